@@ -1,0 +1,143 @@
+"""Command-line entry points. Thin: parse arguments, call library functions, report.
+
+Every command turns an `InputError` into one line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Callable, Sequence
+
+from shells.errors import InputError
+
+
+def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.ArgumentParser,
+         argv: Sequence[str] | None) -> int:
+    args = parser.parse_args(argv)
+    try:
+        return int(fn(args) or 0)
+    except InputError as exc:
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{parser.prog}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _not_implemented(stage: str) -> Callable[[argparse.Namespace], int]:
+    def fn(args: argparse.Namespace) -> int:
+        print(f"{stage} is not implemented yet (see the project's open issues)", file=sys.stderr)
+        return 1
+    return fn
+
+
+# --------------------------------------------------------------------------------------------
+# shells-scene
+# --------------------------------------------------------------------------------------------
+
+def scene_parser() -> argparse.ArgumentParser:
+    from scenes import SCENES
+
+    p = argparse.ArgumentParser(
+        prog="shells-scene",
+        description="Render a toy data set with Mitsuba in the Blender/NeRF-synthetic format "
+                    "(RGBA PNGs, transforms_train.json, transforms_test.json).")
+    p.add_argument("name", choices=sorted(SCENES), help="which toy scene")
+    p.add_argument("--out", required=True, help="output directory (created)")
+    p.add_argument("--res", type=int, default=64, help="image width and height (default 64)")
+    p.add_argument("--views", type=int, default=32, help="training views (default 32)")
+    p.add_argument("--test-views", type=int, default=8, help="test views (default 8)")
+    p.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    p.add_argument("--seed", type=int, default=0, help="RNG seed (default 0)")
+    return p
+
+
+def _scene(args: argparse.Namespace) -> int:
+    from scenes import make_scene
+
+    make_scene(args.name, args.out, res=args.res, views=args.views, test_views=args.test_views,
+               spp=args.spp, seed=args.seed)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def scene_main(argv: Sequence[str] | None = None) -> int:
+    return _run(_scene, scene_parser(), argv)
+
+
+# --------------------------------------------------------------------------------------------
+# shells-train, shells-extract, shells-finetune, shells-render
+# --------------------------------------------------------------------------------------------
+
+def train_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="shells-train",
+        description="Stage 1: train the hash-grid SDF field with a spatially varying kernel by "
+                    "full-ray NeuS volume rendering.")
+    p.add_argument("--data", required=True, help="data set directory (Blender or Instant-NGP)")
+    p.add_argument("--out", required=True, help="run directory (created)")
+    p.add_argument("--iters", type=int, default=None, help="training steps (overrides config)")
+    p.add_argument("--config", default=None, help="JSON config file (see shells/config.py)")
+    p.add_argument("--preset", choices=["auto", "toy", "paper"], default="auto",
+                   help="base configuration: 'toy' (small field, CPU), 'paper' (paper sizes); "
+                        "'auto' picks toy on CPU and paper on CUDA (default)")
+    p.add_argument("--device", choices=["cpu", "cuda"], default=None,
+                   help="torch device (default: cuda if available)")
+    p.add_argument("--downscale", type=int, default=1, help="downscale images by this factor")
+    p.add_argument("--resume", action="store_true", help="continue from RUN's last checkpoint")
+    return p
+
+
+def train_main(argv: Sequence[str] | None = None) -> int:
+    return _run(_not_implemented("shells-train"), train_parser(), argv)
+
+
+def extract_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="shells-extract",
+        description="Extract the outer and inner shell meshes (RUN/shells/{outer,inner}.ply) by "
+                    "level-set dilation and erosion of the trained SDF.")
+    p.add_argument("run", help="run directory written by shells-train")
+    p.add_argument("--resolution", type=int, default=None, help="grid resolution per axis")
+    return p
+
+
+def extract_main(argv: Sequence[str] | None = None) -> int:
+    return _run(_not_implemented("shells-extract"), extract_parser(), argv)
+
+
+def finetune_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="shells-finetune",
+        description="Stage 2: fine-tune the field inside the narrow band (colour loss only).")
+    p.add_argument("run", help="run directory with a checkpoint and shells")
+    p.add_argument("--iters", type=int, default=None, help="fine-tuning steps")
+    p.add_argument("--resume", action="store_true", help="continue from the last stage-2 checkpoint")
+    return p
+
+
+def finetune_main(argv: Sequence[str] | None = None) -> int:
+    return _run(_not_implemented("shells-finetune"), finetune_parser(), argv)
+
+
+def render_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="shells-render",
+        description="Render a split with narrow-band sampling between the shells (band) or "
+                    "dense sampling along the whole ray (full); writes PNGs and metrics.json.")
+    p.add_argument("run", help="run directory")
+    p.add_argument("--split", default="test", help="data split to render (default test)")
+    p.add_argument("--mode", choices=["band", "full"], default="band")
+    p.add_argument("--width", type=int, default=None, help="output width (default: data set's)")
+    p.add_argument("--height", type=int, default=None, help="output height")
+    p.add_argument("--out", default=None, help="output directory (default RUN/render-MODE)")
+    return p
+
+
+def render_main(argv: Sequence[str] | None = None) -> int:
+    return _run(_not_implemented("shells-render"), render_parser(), argv)
+
+
+def demo_main(argv: Sequence[str] | None = None) -> int:
+    return _run(_not_implemented("shells-demo"), argparse.ArgumentParser(prog="shells-demo"), argv)
