@@ -75,7 +75,8 @@ def train_parser() -> argparse.ArgumentParser:
         prog="shells-train",
         description="Stage 1: train the hash-grid SDF field with a spatially varying kernel by "
                     "full-ray NeuS volume rendering.")
-    p.add_argument("--data", required=True, help="data set directory (Blender or Instant-NGP)")
+    p.add_argument("--data", default=None,
+                   help="data set directory (Blender or Instant-NGP); not needed with --resume")
     p.add_argument("--out", required=True, help="run directory (created)")
     p.add_argument("--iters", type=int, default=None, help="training steps (overrides config)")
     p.add_argument("--config", default=None, help="JSON config file (see shells/config.py)")
@@ -89,8 +90,32 @@ def train_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _train(args: argparse.Namespace) -> int:
+    from shells.config import Config, load_config, toy_config
+    from shells.device import torch_device
+    from shells.training import train
+
+    device = torch_device(args.device)
+    preset = args.preset
+    if preset == "auto":
+        preset = "paper" if device.type == "cuda" else "toy"
+    cfg = load_config(args.config, toy_config() if preset == "toy" else Config())
+    if args.data is None and not args.resume:
+        raise InputError("--data DIR is required (the data set to train on)")
+    if args.iters is not None and args.iters < 1:
+        raise InputError(f"--iters {args.iters}: must be at least 1")
+    if args.downscale < 1:
+        raise InputError(f"--downscale {args.downscale}: must be at least 1")
+    summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
+                    resume=args.resume, iters=args.iters)
+    if "test" in summary:
+        print(f"test PSNR {summary['test']['psnr']:.2f} dB over {summary['test']['n_views']} "
+              f"views; checkpoint {args.out}/checkpoint.pt")
+    return 0
+
+
 def train_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_not_implemented("shells-train"), train_parser(), argv)
+    return _run(_train, train_parser(), argv)
 
 
 def extract_parser() -> argparse.ArgumentParser:

@@ -68,19 +68,25 @@ class TrainConfig:
 
 @dataclass
 class ShellConfig:
-    """Shell extraction by level-set dilation and erosion (§3.3, Procedures 1-2)."""
+    """Shell extraction by level-set dilation and erosion (§3.3, Procedures 1-2).
 
-    resolution: int = 256  # grid points per axis over the scene box
-    steps: int = 50  # forward-Euler steps T
-    dt: float = 0.1  # time step (in units of grid spacing per unit velocity)
-    dilate_zeta: float = 0.1  # soft-falloff width zeta for dilation
-    dilate_curvature: float = 0.01  # curvature weight lambda_curv for dilation
-    erode_zeta: float = 0.05  # soft-falloff width zeta for erosion
-    erode_curvature: float = 0.0  # curvature weight for erosion
-    beta_d: float = 1.0  # dilation speed per unit kernel size (not in the paper; see docs)
-    sigma_min: float = 0.0  # no dilation below this kernel size (not in the paper)
-    beta_e: float = 1.0  # erosion speed per unit kernel size (not in the paper)
-    v_max: float = 1.0  # cap on erosion speed (not in the paper)
+    Units (see shells/levelset/evolve.py): f and s in world units; speeds in world units per
+    unit time; total time steps * dt = 5, so a free front moves 5 * v world units, and the
+    falloff stops it at most zeta (world units of f) from the surface.
+    """
+
+    resolution: int = 256  # grid points per axis over the scene box (corners inclusive)
+    steps: int = 50  # forward-Euler steps T (paper)
+    dt: float = 0.1  # time step (paper); split into sub-steps when v_max * dt > cfl * h
+    cfl: float = 0.5  # Courant number bounding each sub-step (not in the paper)
+    dilate_zeta: float = 0.1  # soft-falloff width zeta for dilation (paper; world units of f)
+    dilate_curvature: float = 0.01  # lambda_curv for dilation (paper; grid units, smoothing sign)
+    erode_zeta: float = 0.05  # soft-falloff width zeta for erosion (paper)
+    erode_curvature: float = 0.0  # lambda_curv for erosion (paper)
+    beta_d: float = 1.0  # dilation speed per unit kernel size s, 1 / time (not in the paper)
+    sigma_min: float = 0.01  # threshold on the kernel size s: no dilation where s <= this
+    beta_e: float = 0.3  # erosion speed per unit kernel size s: erodes 1.5 s (not in the paper)
+    v_max: float = 0.04  # cap on both speeds, world units / time (5 * v_max > 2 zeta)
     min_component_fraction: float = 0.01  # drop mesh pieces smaller than this share of faces
     chunk: int = 262144  # grid points per field evaluation
 
@@ -96,6 +102,7 @@ class RenderConfig:
     full_samples: int = 256  # samples per ray in `full` mode (baseline, whole box)
     variant: str | None = None  # Mitsuba variant; None picks cuda_ad_rgb on a GPU, else llvm_ad_rgb
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # colour behind the content
+    chunk_samples: int = 1 << 24  # rays per batch are limited to this many samples (worst case)
 
 
 @dataclass

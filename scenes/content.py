@@ -1,0 +1,145 @@
+"""Scene content (shapes, materials, media, lights) of the toy scenes as Mitsuba dicts.
+
+Every scene lives inside radius 0.6 of the origin (scene box [-1, 1]^3). Lights are
+directional (never visible to a camera), so a ray that misses the content sees black.
+Each builder returns a `SceneSpec`: the Mitsuba scene-dict entries (no sensor, no integrator),
+the JSON ``"scene"`` record, and the geometry the exact opacity is computed from (opaque
+spheres and the density grid; see ``scenes/opacity.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+SPHERE_RADIUS = 0.5  # `sphere`: opaque sphere radius
+FUZZ_RADIUS = 0.6  # fuzzy scenes: radius of the bounding sphere of the medium
+CORE_RADIUS = 0.3  # `core-fuzz`: opaque core radius
+GRID_RES = 64  # voxels per axis of the density grid over [-FUZZ_RADIUS, FUZZ_RADIUS]^3
+
+
+@dataclass
+class SceneSpec:
+    """One toy scene: Mitsuba content plus the geometry its exact opacity is computed from."""
+
+    content: dict[str, Any]  # Mitsuba scene-dict entries: shapes, media, lights
+    meta: dict[str, Any]  # the JSON "scene" record
+    spheres: list[tuple[tuple[float, float, float], float]] = field(default_factory=list)
+    # ^ opaque spheres (centre, radius)
+    density: Any = None  # [G, G, G] float32 grid (index [z, y, x]) of the medium, or None
+    sigma_scale: float = 0.0  # extinction = sigma_scale * density (1 / world units)
+    medium_radius: float = 0.0  # the medium lives inside this sphere at the origin
+
+
+def lights() -> dict[str, Any]:
+    """Three directional lights of different colours/strengths (key, fill, rim from below)."""
+    def light(direction, rgb):
+        return {"type": "directional", "direction": list(direction),
+                "irradiance": {"type": "rgb", "value": list(rgb)}}
+    return {"key": light((-1.0, -0.6, -1.0), (2.4, 2.3, 2.1)),
+            "fill": light((1.0, 0.8, -0.3), (0.9, 1.0, 1.2)),
+            "rim": light((0.2, -0.4, 1.0), (0.6, 0.6, 0.6))}
+
+
+def _checker_texture(rng: np.random.Generator, n_u: int = 12, n_v: int = 6,
+                     px: int = 16) -> np.ndarray:  # [n_v * px, n_u * px, 3] linear RGB
+    """A checker of ``n_u`` x ``n_v`` cells over the sphere's (phi, theta) UVs, each cell a
+    random saturated colour, dark and light cells alternating (strong, learnable texture)."""
+    hue = rng.uniform(0.0, 1.0, size=(n_v, n_u))
+    # hue -> RGB on a smooth colour wheel, then alternate brightness like a checkerboard.
+    rgb = 0.5 + 0.5 * np.cos(2 * np.pi * (hue[..., None] - np.array([0.0, 1 / 3, 2 / 3])))
+    dark = (np.add.outer(np.arange(n_v), np.arange(n_u)) % 2 == 1)[..., None]
+    rgb = np.where(dark, 0.15 * rgb + 0.02, 0.25 + 0.7 * rgb)
+    return np.repeat(np.repeat(rgb, px, axis=0), px, axis=1).astype(np.float32)
+
+
+def sphere(rng: np.random.Generator) -> SceneSpec:
+    """`sphere`: opaque textured rough-plastic sphere (view-dependent highlight)."""
+    content = {"ball": _textured_ball(rng, SPHERE_RADIUS), **lights()}
+    return SceneSpec(content, {"name": "sphere", "center": [0.0, 0.0, 0.0],
+                               "radius": SPHERE_RADIUS},
+                     spheres=[((0.0, 0.0, 0.0), SPHERE_RADIUS)])
+
+
+def _textured_ball(rng: np.random.Generator, radius: float) -> dict[str, Any]:
+    import mitsuba as mi
+
+    bsdf = {"type": "roughplastic", "distribution": "ggx", "alpha": 0.12,
+            "diffuse_reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(_checker_texture(rng)),
+                                    "filter_type": "nearest", "raw": True}}
+    return {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": radius, "bsdf": bsdf}
+
+
+def fuzz_density(rng: np.random.Generator, res: int = GRID_RES, radius: float = FUZZ_RADIUS,
+                 inner: float = 0.0) -> np.ndarray:  # [res, res, res] density, index [z, y, x]
+    """Hair-like density on a voxel grid covering [-radius, radius]^3.
+
+    Strands are radial: a random noise on the sphere of directions (trilinear lookup of a
+    seeded 3D noise at x / |x|) sharpened into thin streaks, constant along each radius, times
+    a smooth radial falloff from ``inner`` (full density) to ``radius`` (zero). Voxel centres
+    are at (k + 0.5) / res of the box, matching Mitsuba's ``gridvolume``.
+    """
+    noise = rng.uniform(0.0, 1.0, size=(24, 24, 24))
+    c = (np.arange(res) + 0.5) / res * 2 * radius - radius  # voxel centres
+    z, y, x = np.meshgrid(c, c, c, indexing="ij")
+    r = np.sqrt(x * x + y * y + z * z)
+    unit = np.stack([x, y, z]) / np.maximum(r, 1e-6)  # [3, res, res, res]
+    # Sample the noise on a sphere of radius 10 cells around the noise grid's centre.
+    coords = 11.5 + 10.0 * unit
+    strands = ndimage.map_coordinates(noise, coords.reshape(3, -1), order=1, mode="wrap")
+    strands = np.clip((strands.reshape(r.shape) - 0.45) / 0.25, 0.0, 1.0) ** 2
+    t = np.clip((r - inner) / (0.92 * radius - inner), 0.0, 1.0)
+    falloff = 0.5 + 0.5 * np.cos(np.pi * t)  # 1 at `inner`, 0 at 0.92 radius and beyond
+    return (strands * falloff).astype(np.float32)
+
+
+def _fuzz_medium(density: np.ndarray,  # [G, G, G]
+                 sigma_scale: float, radius: float):
+    """Heterogeneous medium of warm-coloured, forward-scattering fibres over the grid box."""
+    import mitsuba as mi
+
+    return mi.load_dict({
+        "type": "heterogeneous",
+        "sigma_t": density_volume(density, radius),
+        "scale": sigma_scale,
+        "albedo": {"type": "rgb", "value": [0.85, 0.62, 0.38]},
+        "phase": {"type": "hg", "g": 0.3}})
+
+
+def density_volume(density: np.ndarray,  # [G, G, G]
+                   radius: float) -> dict[str, Any]:
+    """``gridvolume`` dict mapping the grid onto [-radius, radius]^3 (trilinear)."""
+    import mitsuba as mi
+
+    box = mi.ScalarTransform4f().translate([-radius] * 3).scale(2 * radius)
+    return {"type": "gridvolume", "grid": mi.VolumeGrid(density[..., None]),
+            "to_world": box, "filter_type": "trilinear"}
+
+
+def fuzzy_sphere(rng: np.random.Generator) -> SceneSpec:
+    """`fuzzy-sphere`: a ball of hair-like heterogeneous medium, no hard surface."""
+    density, sigma = fuzz_density(rng, inner=0.15), 30.0
+    content = {"fuzz": {"type": "sphere", "radius": FUZZ_RADIUS, "bsdf": {"type": "null"},
+                        "interior": _fuzz_medium(density, sigma, FUZZ_RADIUS)},
+               **lights()}
+    return SceneSpec(content, {"name": "fuzzy-sphere", "center": [0.0, 0.0, 0.0],
+                               "radius": FUZZ_RADIUS},
+                     density=density, sigma_scale=sigma, medium_radius=FUZZ_RADIUS)
+
+
+def core_fuzz(rng: np.random.Generator) -> SceneSpec:
+    """`core-fuzz`: an opaque sphere (radius 0.3) inside a fuzzy coat (outer radius 0.6)."""
+    core = _textured_ball(rng, CORE_RADIUS)
+    density, sigma = fuzz_density(rng, inner=CORE_RADIUS), 20.0
+    medium = _fuzz_medium(density, sigma, FUZZ_RADIUS)
+    # The core sits inside the medium: rays leaving its surface must be attenuated by the coat.
+    content = {"fuzz": {"type": "sphere", "radius": FUZZ_RADIUS, "bsdf": {"type": "null"},
+                        "interior": medium},
+               "core": dict(core, exterior=medium), **lights()}
+    return SceneSpec(content, {"name": "core-fuzz", "center": [0.0, 0.0, 0.0],
+                               "core_radius": CORE_RADIUS, "coat_radius": FUZZ_RADIUS},
+                     spheres=[((0.0, 0.0, 0.0), CORE_RADIUS)], density=density,
+                     sigma_scale=sigma, medium_radius=FUZZ_RADIUS)

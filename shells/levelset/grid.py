@@ -1,0 +1,55 @@
+"""Sampling a field's SDF f and kernel size s on a regular grid over the scene box."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+
+from shells.errors import InputError
+
+
+def check_aabb(aabb) -> np.ndarray:  # [2, 3] (min corner, max corner), float64
+    """Validate a scene box given as [[xmin, ymin, zmin], [xmax, ymax, zmax]]."""
+    box = np.asarray(aabb, dtype=np.float64)
+    if box.shape != (2, 3) or not np.all(np.isfinite(box)) or not np.all(box[1] > box[0]):
+        raise InputError(f"aabb {np.asarray(aabb).tolist()}: expected [[xmin, ymin, zmin], "
+                         "[xmax, ymax, zmax]] with max > min on every axis")
+    return box
+
+
+def grid_axes(aabb, resolution: int) -> list[np.ndarray]:  # 3 x [R] world coordinates
+    """Per-axis coordinates of the resolution^3 grid spanning the aabb corners inclusive."""
+    box = check_aabb(aabb)
+    return [np.linspace(box[0, a], box[1, a], resolution) for a in range(3)]
+
+
+def sample_grid(fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+                aabb, resolution: int, chunk: int = 262144,
+                device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Evaluate ``fn(x [N, 3] world points) -> (sdf [N], s [N])`` on the grid, in chunks.
+
+    Returns f [R, R, R] float32, s [R, R, R] float32 indexed [i, j, k] = (x, y, z), and the
+    grid spacing (3,) in world units. Points are built per chunk on ``device`` (CPU or CUDA)
+    under ``torch.no_grad()``; results come back to host memory chunk by chunk.
+    """
+    if int(resolution) < 2:
+        raise InputError(f"grid resolution {resolution}: must be at least 2 (e.g. 256)")
+    res = int(resolution)
+    box = check_aabb(aabb)
+    spacing = (box[1] - box[0]) / (res - 1)
+    n = res ** 3
+    f = np.empty(n, dtype=np.float32)
+    s = np.empty(n, dtype=np.float32)
+    lo = torch.as_tensor(box[0], dtype=torch.float32, device=device)
+    h = torch.as_tensor(spacing, dtype=torch.float32, device=device)
+    with torch.no_grad():
+        for start in range(0, n, int(chunk)):
+            flat = torch.arange(start, min(start + int(chunk), n), device=device)
+            ijk = torch.stack(torch.unravel_index(flat, (res, res, res)), dim=-1)
+            x = lo + ijk.to(torch.float32) * h  # [N, 3]
+            sdf, kernel = fn(x)
+            f[start:start + len(flat)] = sdf.reshape(-1).float().cpu().numpy()
+            s[start:start + len(flat)] = kernel.reshape(-1).float().cpu().numpy()
+    return f.reshape(res, res, res), s.reshape(res, res, res), spacing

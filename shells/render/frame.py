@@ -1,0 +1,123 @@
+"""Render rays and frames in Dr.Jit: narrow band (`band`) or dense whole-ray baseline (`full`).
+
+Per batch of rays (§3.4, §4.2):
+
+    band: rays -> M+/M- intervals (raycast) -> Procedure 3 samples (sampler, packed)
+    full: rays -> scene-box interval          -> cfg.full_samples samples per ray (same placement
+          with a fixed count: linspace(near, far, N + 2)[1:-1], sections of (far - near) / N)
+    then: one batched field evaluation at all samples -> NeuS alpha (shells.fields.neus, the
+          formula shared with training) with cos = d . n and the sample's section length ->
+          front-to-back compositing per ray over the background.
+
+The field is anything with ``eval(x, d) -> FieldSample`` (``shells.fields.drjit_field``:
+.sdf, .s Float [M]; .normal, .rgb 3-vectors [M]) on Dr.Jit arrays x, d (3-vectors of width M),
+e.g. ``shells.fields.drjit_field.DrJitField``. Nothing goes through torch in between; the inputs may
+be torch rays (converted without a copy) and the outputs convert to torch without a copy.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import drjit as dr
+import mitsuba as mi
+import torch
+
+from shells.config import RenderConfig
+from shells.errors import InputError
+from shells.fields.neus import neus_alpha
+from shells.render.raycast import ShellScene, box_intervals, to_point3f
+from shells.render.sampler import PackedSamples, place_packed
+
+MODES = ("band", "full")
+
+
+@dr.syntax
+def composite(alpha: Any,  # mi.Float [M] packed per ray, front to back
+              rgb: Any,  # mi.Color3f [M]
+              start: Any,  # mi.UInt32 [R] first sample of each ray
+              count: Any,  # mi.UInt32 [R] samples per ray
+              background: Any,  # mi.Color3f, width 1 or R
+              ) -> tuple[Any, Any]:  # colour mi.Color3f [R], opacity mi.Float [R]
+    """C = sum_i T_i alpha_i c_i + T_n bg, T_i = prod_{j<i} (1 - alpha_j), per ray."""
+    i = mi.UInt32(0)  # sample index within the ray
+    trans = dr.ones(mi.Float, dr.width(count))  # transmittance T_i
+    acc = dr.zeros(mi.Color3f, dr.width(count))  # accumulated colour
+    while dr.hint(i < count, max_iterations=-1, label="composite"):
+        idx = start + i
+        a = dr.gather(mi.Float, alpha, idx)
+        acc += (trans * a) * dr.gather(mi.Color3f, rgb, idx)
+        trans *= 1.0 - a
+        i += 1
+    return acc + trans * background, 1.0 - trans
+
+
+def shade_samples(field: Any, samples: PackedSamples, o: Any, d: Any) -> tuple[Any, Any]:
+    """One batched field evaluation at the packed samples: alpha [M], rgb [M]."""
+    ro = dr.gather(mi.Point3f, o, samples.ray)
+    rd = dr.gather(mi.Vector3f, d, samples.ray)
+    x = dr.fma(rd, samples.t, ro)
+    f = field.eval(x, rd)
+    alpha = neus_alpha(f.sdf, f.s, dr.dot(rd, f.normal), samples.delta)
+    rgb = mi.Color3f(f.rgb)
+    # One kernel for all four outputs: compositing gathers from them, and a gather source that
+    # is still symbolic gets evaluated on its own (the field would run once per output).
+    dr.eval(alpha, rgb)
+    return alpha, rgb
+
+
+def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
+                origins: Any,  # [R, 3] torch/numpy or mi.Point3f
+                dirs: Any,  # [R, 3] unit directions
+                cfg: RenderConfig,
+                mode: str = "band",
+                scene: ShellScene | None = None,  # needed in band mode
+                aabb: Any = None,  # [2, 3] scene box, needed in full mode
+                ) -> tuple[Any, Any]:  # colour mi.Color3f [R], samples per ray mi.UInt32 [R]
+    """Colour of each ray over cfg.background, and how many field samples it took."""
+    o = to_point3f(origins, mi.Point3f)
+    d = to_point3f(dirs, mi.Vector3f)
+    if mode == "band":
+        if scene is None:
+            raise InputError("band mode needs the shells: pass a ShellScene")
+        samples = place_packed(scene.intervals(o, d, cfg.dp_max), cfg)
+    elif mode == "full":
+        if aabb is None:
+            raise InputError("full mode needs the scene box: pass aabb [2, 3]")
+        samples = place_packed(box_intervals(o, d, aabb), cfg, fixed=cfg.full_samples)
+    else:
+        raise InputError(f"mode '{mode}': expected one of {MODES}")
+    bg = mi.Color3f(*[float(c) for c in cfg.background])
+    if samples.size == 0:
+        return dr.zeros(mi.Color3f, dr.width(d)) + bg, samples.count
+    alpha, rgb = shade_samples(field, samples, o, d)
+    colour, _ = composite(alpha, rgb, samples.start, samples.count, bg)
+    dr.eval(colour, samples.count)
+    return colour, samples.count
+
+
+def render_image(field: Any,
+                 origins: torch.Tensor,  # [H * W, 3] row-major pixel rays
+                 dirs: torch.Tensor,  # [H * W, 3]
+                 height: int, width: int,
+                 cfg: RenderConfig,
+                 mode: str = "band",
+                 scene: ShellScene | None = None,
+                 aabb: Any = None,
+                 ) -> tuple[torch.Tensor, torch.Tensor]:  # rgb [H, W, 3] float32, spp [H, W] int
+    """A frame in ray chunks of at most cfg.chunk_samples samples (upper bound per ray)."""
+    R = height * width
+    if origins.shape[0] != R or dirs.shape[0] != R:
+        raise InputError(f"{origins.shape[0]} rays for a {width}x{height} image")
+    per_ray = cfg.full_samples if mode == "full" else ((cfg.dp_max + 1) // 2) * cfg.n_max
+    chunk = max(1, cfg.chunk_samples // max(per_ray, 1))
+    rgbs, spps = [], []
+    for a in range(0, R, chunk):
+        colour, count = render_rays(field, origins[a:a + chunk], dirs[a:a + chunk], cfg, mode,
+                                    scene, aabb)
+        n = dr.width(count)
+        rgbs.append(mi.TensorXf(dr.ravel(colour), (n, 3)).torch())
+        spps.append(mi.TensorXf(mi.Float(count), (n,)).torch())
+    rgb = torch.cat(rgbs).reshape(height, width, 3)
+    spp = torch.cat(spps).reshape(height, width).to(torch.int32)
+    return rgb, spp

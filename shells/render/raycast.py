@@ -1,0 +1,217 @@
+"""Ray casting against the shells: ordered M+ entry/exit intervals, clipped at M- (§3.4).
+
+One implementation, used by stage-2 training (through torch, zero-copy) and by the Dr.Jit
+renderer. Conventions:
+
+* Shell meshes are triangle arrays (V [n, 3] float32, F [m, 3] int) from marching cubes of an
+  SDF that is negative inside, so the geometric normal ``si.n`` points outward and
+  ``dot(d, si.n) < 0`` means the ray *enters* the shell.
+* Distances ``t`` are along the original ray, in world units, with unit directions.
+* A ray that starts inside M+ opens its first interval at t = 0 (its origin).
+* M- (inner shell) is solid: peeling stops at its first hit and an open interval is closed there.
+* At most ``dp_max`` M+ hits are peeled (depth-peeling budget); an interval still open when the
+  budget runs out, or when the ray leaves the scene (a non-watertight M+), is dropped.
+* The next peel starts from ``si.spawn_ray(d)``, offset by ~1e-4 relative to |p|: shell sheets
+  closer together than that along a ray can be skipped (irrelevant at marching-cubes spacing).
+
+Depth peeling is one symbolic Dr.Jit loop (``@dr.syntax``); every iteration casts the rays that
+are still active against a single Mitsuba scene holding both shells and scatters closed intervals
+into an [R, K] buffer. Measured on 1M rays (dp_max = 8) against 61k triangles (two disjoint
+icospheres as M+, one inside as M-; 0.89 intervals per ray), llvm_ad_rgb on 2 shared CPU cores:
+symbolic loop 0.73 s, evaluated loop (one kernel per peel, like a Python loop) 0.70 s: a tie,
+Embree dominates. We keep the symbolic loop (no host round trip per peel; ``mode='evaluated'``
+runs the same code the other way).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import torch
+
+from shells.device import mitsuba_variant
+from shells.errors import InputError
+
+
+@dataclass
+class Intervals:
+    """M+ intervals per ray. Dr.Jit tensors; ``.torch()`` converts them without a copy."""
+
+    enter: Any  # mi.TensorXf [R, K] entry distances (0 where unused)
+    exit: Any  # mi.TensorXf [R, K] exit distances (0 where unused)
+    count: Any  # TensorXi [R] number of valid intervals, in front-to-back order
+    t_inner: Any  # mi.TensorXf [R] first M- hit distance, inf if none was reached
+
+    @property
+    def K(self) -> int:
+        return int(self.enter.shape[1])
+
+    @classmethod
+    def from_arrays(cls, enter: Any,  # [R, K] torch/numpy/list
+                    exit: Any,  # [R, K]
+                    count: Any,  # [R] valid intervals per ray
+                    t_inner: Any = None,  # [R], default inf
+                    ) -> "Intervals":
+        """Intervals given explicitly (hand-worked tests, the scene box in `full` mode)."""
+        e = torch.as_tensor(enter, dtype=torch.float32)
+        x = torch.as_tensor(exit, dtype=torch.float32)
+        c = torch.as_tensor(count, dtype=torch.int32)
+        ti = (torch.full(c.shape, float("inf")) if t_inner is None
+              else torch.as_tensor(t_inner, dtype=torch.float32))
+        if e.ndim != 2 or x.shape != e.shape or c.shape != e.shape[:1] or ti.shape != c.shape:
+            raise InputError(f"intervals: expected enter/exit [R, K], count/t_inner [R]; got "
+                             f"{tuple(e.shape)}, {tuple(x.shape)}, {tuple(c.shape)}")
+        return cls(enter=mi.TensorXf(e), exit=mi.TensorXf(x), count=_tensor_xi()(c),
+                   t_inner=mi.TensorXf(ti))
+
+    def torch(self) -> dict[str, torch.Tensor]:
+        """Zero-copy torch views: enter/exit [R, K] float32, count [R] int32, t_inner [R]."""
+        return {"enter": self.enter.torch(), "exit": self.exit.torch(),
+                "count": self.count.torch(), "t_inner": self.t_inner.torch()}
+
+
+def _tensor_xi() -> type:
+    """The int32 tensor type of the current Mitsuba variant's backend."""
+    return dr.cuda.ad.TensorXi if mi.variant().startswith("cuda") else dr.llvm.ad.TensorXi
+
+
+def box_intervals(o: Any,  # mi.Point3f [R]
+                  d: Any,  # mi.Vector3f [R] unit directions
+                  aabb: Any,  # [2, 3] (min, max), torch/numpy/list
+                  ) -> Intervals:
+    """The part of each ray inside the scene box as one interval (K = 1): the `full` baseline."""
+    box = torch.as_tensor(aabb, dtype=torch.float32).cpu()
+    if box.shape != (2, 3):
+        raise InputError(f"aabb of shape {tuple(box.shape)}: expected [2, 3] (min, max)")
+    bbox = mi.BoundingBox3f(mi.ScalarPoint3f(*box[0].tolist()), mi.ScalarPoint3f(*box[1].tolist()))
+    hit, mint, maxt = bbox.ray_intersect(mi.Ray3f(o, d))
+    near = dr.maximum(mint, 0.0)
+    hit &= maxt > near
+    near, maxt = dr.select(hit, near, 0.0), dr.select(hit, maxt, 0.0)
+    dr.eval(near, maxt, hit)  # one kernel; the sampler gathers from these
+    n = dr.width(d)
+    return Intervals(enter=mi.TensorXf(near, (n, 1)), exit=mi.TensorXf(maxt, (n, 1)),
+                     count=_tensor_xi()(dr.select(hit, mi.Int(1), mi.Int(0)), (n,)),
+                     t_inner=mi.TensorXf(dr.full(mi.Float, dr.inf, n), (n,)))
+
+
+def to_point3f(x: Any, cls: type = None) -> Any:
+    """torch/numpy [R, 3] or a Dr.Jit 3-vector -> mi.Point3f (or ``cls``) of width R."""
+    cls = cls or mi.Point3f
+    if isinstance(x, torch.Tensor):
+        if x.ndim != 2 or x.shape[1] != 3:
+            raise InputError(f"ray array of shape {tuple(x.shape)}: expected [R, 3]")
+        dev = "cuda" if mi.variant().startswith("cuda") else "cpu"
+        x = mi.TensorXf(x.detach().to(device=dev, dtype=torch.float32).contiguous())
+        return dr.unravel(cls, x.array)
+    if isinstance(x, np.ndarray):
+        if x.ndim != 2 or x.shape[1] != 3:
+            raise InputError(f"ray array of shape {x.shape}: expected [R, 3]")
+        return dr.unravel(cls, mi.Float(np.ascontiguousarray(x, dtype=np.float32).ravel()))
+    return cls(x)
+
+
+def make_mesh(name: str, V: np.ndarray, F: np.ndarray) -> "mi.Mesh":
+    """A Mitsuba mesh from vertex [n, 3] and face [m, 3] arrays."""
+    V = np.asarray(V, dtype=np.float32)
+    F = np.asarray(F)
+    if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
+        raise InputError(f"mesh '{name}': expected V [n, 3] and F [m, 3], got {V.shape}, {F.shape}")
+    if len(F) and (F.min() < 0 or F.max() >= len(V)):
+        raise InputError(f"mesh '{name}': face indices out of range [0, {len(V)})")
+    m = mi.Mesh(name, vertex_count=len(V), face_count=len(F))
+    p = mi.traverse(m)
+    p["vertex_positions"] = mi.Float(V.ravel())
+    p["faces"] = mi.UInt(F.astype(np.uint32).ravel())
+    p.update()
+    return m
+
+
+class ShellScene:
+    """One Mitsuba scene holding the outer shell M+ and (optionally) the inner shell M-."""
+
+    def __init__(self, outer: tuple[np.ndarray, np.ndarray],  # (V [n, 3], F [m, 3]) of M+
+                 inner: tuple[np.ndarray, np.ndarray] | None = None,  # M-, None/empty = none
+                 variant: str | None = None) -> None:
+        self.variant = mitsuba_variant(variant)
+        if outer is None or len(outer[1]) == 0:
+            raise InputError("outer shell is empty: nothing to render; re-run shells-extract "
+                             "with a field that has a surface")
+        self.outer = make_mesh("outer", *outer)
+        shapes = {"type": "scene", "outer": self.outer}
+        self.has_inner = inner is not None and len(inner[1]) > 0
+        if self.has_inner:
+            self.inner = make_mesh("inner", *inner)
+            shapes["inner"] = self.inner
+        self.scene = mi.load_dict(shapes)
+        self._outer_ptr = mi.ShapePtr(self.outer)
+
+    def intervals(self, origins: Any,  # [R, 3] torch/numpy, or mi.Point3f
+                  dirs: Any,  # [R, 3] unit directions, torch/numpy, or mi.Vector3f
+                  dp_max: int,  # at most this many M+ hits peeled per ray
+                  mode: str = "symbolic",  # Dr.Jit loop mode: 'symbolic' or 'evaluated'
+                  ) -> Intervals:
+        """Ordered M+ entry/exit intervals per ray, K = ceil(dp_max / 2) slots.
+
+        Both loop modes give identical results (timings in the module docstring).
+        """
+        if dp_max < 1:
+            raise InputError(f"dp_max={dp_max}: must be >= 1")
+        o = to_point3f(origins, mi.Point3f)
+        d = to_point3f(dirs, mi.Vector3f)
+        n = dr.width(d)
+        K = (dp_max + 1) // 2  # a ray starting inside M+ closes an interval on its first hit
+        enter = dr.zeros(mi.Float, n * K)
+        exit_ = dr.zeros(mi.Float, n * K)
+        count, t_inner = _peel(self.scene, self._outer_ptr, o, d, enter, exit_,
+                               K, dp_max, mode)
+        dr.eval(enter, exit_, count, t_inner)
+        return Intervals(enter=mi.TensorXf(enter, (n, K)), exit=mi.TensorXf(exit_, (n, K)),
+                         count=_tensor_xi()(mi.Int(count), (n,)),
+                         t_inner=mi.TensorXf(t_inner, (n,)))
+
+
+@dr.syntax
+def _peel(scene: "mi.Scene", outer_ptr: Any, o: Any, d: Any, enter: Any, exit_: Any,
+          K: int, dp_max: int, mode: str) -> tuple[Any, Any]:
+    """Depth-peel the scene; scatter closed intervals into enter/exit [R * K] in place."""
+    n = dr.width(d)
+    row = dr.arange(mi.UInt32, n) * K
+    ray = mi.Ray3f(o, d)
+    active = mi.Bool(True)  # still peeling
+    hits = mi.UInt32(0)  # M+ hits consumed so far (<= dp_max)
+    count = mi.UInt32(0)  # closed intervals written for this ray
+    inside = mi.Bool(False)  # an interval is open at t_open
+    t_open = mi.Float(0.0)  # entry distance of the open interval
+    t_prev = mi.Float(0.0)  # distance of the previous M+ hit (0 = ray origin)
+    t_inner = mi.Float(dr.inf)  # first M- hit
+    while dr.hint(active, mode=mode, max_iterations=-1, label="shell_peel"):
+        si = scene.ray_intersect(ray, mi.RayFlags.Minimal, False)
+        valid = si.is_valid()
+        t = dr.dot(si.p - o, d)
+        is_outer = valid & (si.shape == outer_ptr)
+        is_inner = valid & ~is_outer
+        entering = dr.dot(d, si.n) < 0
+
+        # An exit while not inside means the ray started inside M+ (or a missed entry):
+        # the interval then starts at the previous hit, the origin for the first one.
+        start = dr.select(inside, t_open, t_prev)
+        # M- lies inside M+: hitting it first also means the ray started inside M+.
+        close = (is_outer & ~entering) | (is_inner & (inside | (hits == 0)))
+        close &= count < K
+        dr.scatter(enter, start, row + count, active=close)
+        dr.scatter(exit_, t, row + count, active=close)
+        count = dr.select(close, count + 1, count)
+
+        t_inner = dr.select(is_inner, t, t_inner)
+        t_open = dr.select(is_outer & entering & ~inside, t, t_open)  # a double entry keeps the first
+        inside = is_outer & entering
+        hits = dr.select(is_outer, hits + 1, hits)
+        t_prev = dr.select(is_outer, t, t_prev)
+        active = is_outer & (hits < dp_max)
+        ray = si.spawn_ray(d)
+    return count, t_inner

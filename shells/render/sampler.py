@@ -1,0 +1,149 @@
+"""Procedure 3: sample placement inside the shell intervals (§3.4).
+
+For an interval [enter, exit] of width w:
+
+    N     = min(ceil(max(w - w_s, 0) / delta_s) + 1, N_max)
+    t_j   = linspace(enter, exit, N + 2)[1:-1],  j = 0..N-1   (equal spacing w / (N + 1))
+    delta = w / N  for every sample of the interval
+
+so an interval narrower than w_s gets one sample in its middle. The section length delta is our
+choice (the paper leaves it open): the N sections of length w / N tile the interval exactly, so
+the NeuS opacity of a fully crossed surface does not depend on how many samples the interval got.
+
+Placement is written once (``_fill`` below, one symbolic Dr.Jit loop per ray) and writes either
+layout from the same counts:
+
+* packed (renderer): flat sample arrays t [M], delta [M], ray [M] with per-ray start [R] and
+  count [R], samples of a ray contiguous and front to back;
+* padded (stage-2 training, torch): t [R, S], delta [R, S], mask [R, S], S = the largest
+  per-ray count of the batch (at least 1); unused slots are 0 and masked out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+import mitsuba as mi
+import torch
+
+from shells.config import RenderConfig
+from shells.render.raycast import Intervals, ShellScene
+
+
+@dataclass
+class PackedSamples:
+    """Samples of all rays, flat (Dr.Jit arrays)."""
+
+    t: Any  # mi.Float [M] distance along the ray
+    delta: Any  # mi.Float [M] section length
+    ray: Any  # mi.UInt32 [M] index of the sample's ray
+    start: Any  # mi.UInt32 [R] first sample of each ray
+    count: Any  # mi.UInt32 [R] samples per ray
+    max_count: int  # largest count (loop bound for compositing)
+
+    @property
+    def size(self) -> int:
+        return dr.width(self.t) if self.max_count > 0 else 0
+
+
+def interval_counts(width: Any,  # mi.Float [...] interval widths (world units)
+                    w_s: float, delta_s: float, n_max: int) -> Any:  # mi.UInt32 [...]
+    """Procedure 3 sample count N = min(ceil(max(w - w_s, 0) / delta_s) + 1, N_max)."""
+    n = dr.ceil(dr.maximum(width - w_s, 0.0) / delta_s) + 1.0
+    return mi.UInt32(dr.minimum(n, float(n_max)))
+
+
+def _per_interval_counts(iv: Intervals, cfg: RenderConfig,
+                         fixed: int | None) -> tuple[Any, Any]:
+    """Counts per interval slot [R * K] (0 for unused slots) and per ray [R]."""
+    R, K = iv.enter.shape
+    enter, exit_ = iv.enter.array, iv.exit.array
+    slot = dr.arange(mi.UInt32, R * K)
+    valid = (slot % K) < dr.repeat(mi.UInt32(iv.count.array), K)
+    if fixed is None:
+        n = interval_counts(dr.maximum(exit_ - enter, 0.0), cfg.w_s, cfg.delta_s, cfg.n_max)
+    else:
+        n = dr.full(mi.UInt32, fixed, R * K)
+    n = dr.select(valid, n, 0)
+    per_ray = dr.block_reduce(dr.ReduceOp.Add, n, K) if K > 1 else mi.UInt32(n)
+    return n, per_ray
+
+
+@dr.syntax
+def _fill(enter: Any, exit_: Any, n_int: Any, per_ray: Any, base: Any, K: int,
+          t_out: Any, delta_out: Any, ray_out: Any) -> None:
+    """Write each ray's samples to t_out/delta_out/ray_out[base[r] + i], i < per_ray[r]."""
+    R = dr.width(per_ray)
+    r = dr.arange(mi.UInt32, R)
+    row = r * K
+    i = mi.UInt32(0)  # sample index within the ray
+    k = mi.UInt32(0)  # current interval slot
+    j = mi.UInt32(0)  # sample index within the interval
+    while dr.hint(i < per_ray, max_iterations=-1, label="band_fill"):
+        nk = dr.gather(mi.UInt32, n_int, row + k)
+        e = dr.gather(mi.Float, enter, row + k)
+        w = dr.maximum(dr.gather(mi.Float, exit_, row + k) - e, 0.0)
+        nf = mi.Float(nk)
+        dst = base + i
+        dr.scatter(t_out, dr.fma(w, mi.Float(j + 1) / (nf + 1.0), e), dst)
+        dr.scatter(delta_out, w / nf, dst)
+        if ray_out is not None:
+            dr.scatter(ray_out, r, dst)
+        i += 1
+        j += 1
+        if j >= nk:
+            k += 1
+            j = mi.UInt32(0)
+
+
+def place_packed(iv: Intervals, cfg: RenderConfig,
+                 fixed: int | None = None,  # samples per interval instead of Procedure 3
+                 ) -> PackedSamples:
+    """Packed layout for the Dr.Jit renderer."""
+    R, K = iv.enter.shape
+    n_int, per_ray = _per_interval_counts(iv, cfg, fixed)
+    start = dr.prefix_sum(per_ray)
+    dr.eval(n_int, per_ray, start)
+    M = int(dr.sum(per_ray)[0]) if R else 0
+    max_count = int(dr.max(per_ray)[0]) if R else 0
+    size = max(M, 1)  # keep arrays non-empty; PackedSamples.size reports 0
+    t = dr.zeros(mi.Float, size)
+    delta = dr.zeros(mi.Float, size)
+    ray = dr.zeros(mi.UInt32, size)
+    if M > 0:
+        _fill(iv.enter.array, iv.exit.array, n_int, per_ray, start, K, t, delta, ray)
+    dr.eval(t, delta, ray)
+    return PackedSamples(t=t, delta=delta, ray=ray, start=start, count=per_ray,
+                         max_count=max_count)
+
+
+def place_padded(iv: Intervals, cfg: RenderConfig) -> tuple[torch.Tensor, torch.Tensor,
+                                                           torch.Tensor]:
+    """Padded torch layout: t [R, S], delta [R, S], mask [R, S] bool."""
+    R, K = iv.enter.shape
+    n_int, per_ray = _per_interval_counts(iv, cfg, None)
+    dr.eval(n_int, per_ray)
+    S = max(int(dr.max(per_ray)[0]) if R else 0, 1)
+    t = dr.zeros(mi.Float, R * S)
+    delta = dr.zeros(mi.Float, R * S)
+    if R:
+        # S changes from batch to batch: opaque, so it is not baked into (and recompiling) kernels
+        base = dr.arange(mi.UInt32, R) * dr.opaque(mi.UInt32, S)
+        _fill(iv.enter.array, iv.exit.array, n_int, per_ray, base, K, t, delta, None)
+    dr.eval(t, delta)
+    t_torch = mi.TensorXf(t, (R, S)).torch()
+    delta_torch = mi.TensorXf(delta, (R, S)).torch()
+    count = mi.TensorXf(mi.Float(per_ray), (R,)).torch()
+    mask = torch.arange(S, device=t_torch.device)[None, :] < count[:, None]
+    return t_torch, delta_torch, mask
+
+
+def band_samples(scene: ShellScene,
+                 origins: Any,  # [R, 3] torch (or Dr.Jit Point3f)
+                 dirs: Any,  # [R, 3] unit directions
+                 cfg: RenderConfig,
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stage-2 training samples: t [R, S], delta [R, S], mask [R, S] bool (torch, no grad)."""
+    return place_padded(scene.intervals(origins, dirs, cfg.dp_max), cfg)
