@@ -63,9 +63,13 @@ def ray_transmittance(spec: SceneSpec,
 
 def opacity(spec: SceneSpec,
             c2w_gl: np.ndarray,  # [4, 4] OpenGL camera-to-world
-            camera_angle_x: float, res: int, n_sub: int = 4,
+            camera_angle_x: float, res: int, n_sub: int = 5,
             n_steps: int = 128) -> np.ndarray:  # [res, res] alpha in [0, 1]
-    """Pixel alpha of the view: 1 - mean transmittance over n_sub x n_sub stratified rays."""
+    """Pixel alpha of the view: 1 - mean transmittance over n_sub x n_sub stratified rays.
+
+    n_sub is odd by default so that a coverage of exactly one half cannot occur: alpha > 0.5
+    then agrees with "the pixel-centre ray hits" along a straight-ish rim.
+    """
     grid = (np.arange(n_sub) + 0.5) / n_sub
     offsets = np.stack(np.meshgrid(grid, grid, indexing="ij"), -1).reshape(-1, 2)  # [K, 2]
     o, d = pixel_rays_gl(c2w_gl, camera_angle_x, res, res, offsets)  # [H, W, K, 3]

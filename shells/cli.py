@@ -6,6 +6,7 @@ Every command turns an `InputError` into one line on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from typing import Callable, Sequence
 
@@ -23,13 +24,6 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
         return 130
-
-
-def _not_implemented(stage: str) -> Callable[[argparse.Namespace], int]:
-    def fn(args: argparse.Namespace) -> int:
-        print(f"{stage} is not implemented yet (see the project's open issues)", file=sys.stderr)
-        return 1
-    return fn
 
 
 # --------------------------------------------------------------------------------------------
@@ -128,8 +122,17 @@ def extract_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _extract(args: argparse.Namespace) -> int:
+    from shells.pipeline import extract_run
+
+    stats = extract_run(args.run, args.resolution)
+    print(f"wrote {args.run}/shells/outer.ply, inner.ply, stats.json, slice.png")
+    print(json.dumps({k: v for k, v in stats.items() if not isinstance(v, dict)}, indent=1))
+    return 0
+
+
 def extract_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_not_implemented("shells-extract"), extract_parser(), argv)
+    return _run(_extract, extract_parser(), argv)
 
 
 def finetune_parser() -> argparse.ArgumentParser:
@@ -142,8 +145,18 @@ def finetune_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _finetune(args: argparse.Namespace) -> int:
+    from shells.finetune import finetune
+
+    if args.iters is not None and args.iters < 1:
+        raise InputError(f"--iters {args.iters}: must be at least 1")
+    summary = finetune(args.run, iters=args.iters, resume=args.resume)
+    print(f"stage 2 done ({summary['step']} steps); checkpoint {args.run}/finetune.pt")
+    return 0
+
+
 def finetune_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_not_implemented("shells-finetune"), finetune_parser(), argv)
+    return _run(_finetune, finetune_parser(), argv)
 
 
 def render_parser() -> argparse.ArgumentParser:
@@ -157,12 +170,54 @@ def render_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=None, help="output width (default: data set's)")
     p.add_argument("--height", type=int, default=None, help="output height")
     p.add_argument("--out", default=None, help="output directory (default RUN/render-MODE)")
+    p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest",
+                   help="which checkpoint: stage 2 when present (latest, default), or explicit")
     return p
 
 
+def _render(args: argparse.Namespace) -> int:
+    from shells.render.run import render_run
+
+    for name in ("width", "height"):
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            raise InputError(f"--{name} {v}: must be a positive number of pixels")
+    m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
+                   height=args.height, out=args.out, stage=args.stage)
+    fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
+    print(f"{m['mode']}: PSNR {fmt(m.get('psnr'), '.2f')} dB, SSIM {fmt(m.get('ssim'), '.4f')}, "
+          f"{m['samples_per_pixel']:.2f} samples/pixel, {m['ms_per_frame']:.1f} ms/frame "
+          f"({m['width']}x{m['height']}, {m['variant']}) -> {m['out']}")
+    return 0
+
+
 def render_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_not_implemented("shells-render"), render_parser(), argv)
+    return _run(_render, render_parser(), argv)
+
+
+def demo_parser() -> argparse.ArgumentParser:
+    from scenes import SCENES
+
+    p = argparse.ArgumentParser(
+        prog="shells-demo",
+        description="The whole pipeline on a built-in toy scene: render the data set, train "
+                    "stage 1, extract the shells, fine-tune stage 2, render full vs band and "
+                    "print PSNR, samples/pixel and ms/frame.")
+    p.add_argument("--out", default="runs/demo", help="output directory (default runs/demo)")
+    p.add_argument("--scene", choices=sorted(SCENES), default="core-fuzz")
+    p.add_argument("--res", type=int, default=64, help="image size (default 64)")
+    p.add_argument("--iters", type=int, default=None, help="stage-1 steps (default: toy config)")
+    p.add_argument("--finetune-iters", type=int, default=None, help="stage-2 steps")
+    return p
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from shells.pipeline import demo
+
+    demo(args.out, scene=args.scene, res=args.res, iters=args.iters,
+         finetune_iters=args.finetune_iters)
+    return 0
 
 
 def demo_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_not_implemented("shells-demo"), argparse.ArgumentParser(prog="shells-demo"), argv)
+    return _run(_demo, demo_parser(), argv)

@@ -291,7 +291,6 @@ def test_unknown_scene_and_cli_exit_status(tmp_path, capsys):
     assert set(SCENES) == {"sphere", "fuzzy-sphere", "core-fuzz"}
 
 
-@pytest.mark.slow
 def test_cli_default_sphere_under_a_minute(tmp_path):
     from shells.cli import scene_main
 

@@ -128,47 +128,55 @@ def band_widths(surface: trimesh.Trimesh,  # M0: marching cubes of f0
                 sdf_plus: np.ndarray, sdf_minus: np.ndarray,  # [X, Y, Z]
                 box: np.ndarray,  # [2, 3]
                 cfg: ShellConfig, max_points: int = 20000) -> dict:
-    """Distances from the surface f0 = 0 to M+ (outward) and to M- (inward) along the normal.
+    """Statistics of `normal_distances`: dilation d+, erosion d-, band width d+ + d-.
 
-    At (a subsample of) the M0 vertices p with outward normal n, march t in steps of h/8 and
-    find, by linear interpolation of the trilinearly interpolated grids, the first t with
-    SDF+(p + t n) > 0 (the dilation d+) and with SDF-(p - t n) < 0 (the erosion d-). The band
-    width is d+ + d-; points with no M- within reach (the band swallowed the interior) are
-    counted in ``no_inner_fraction`` and left out of the width statistics.
+    Points with no M- within reach (the band swallowed the interior) are counted in
+    ``no_inner_fraction`` and left out of the width statistics.
     """
     if len(surface.faces) == 0:
         return {"band_width": {"count": 0}, "dilation": {"count": 0}, "erosion": {"count": 0},
                 "no_inner_fraction": 1.0}
+    _, d_plus, d_minus = normal_distances(surface, sdf_plus, sdf_minus, box, cfg, max_points)
+    return {"band_width": _percentiles(d_plus + d_minus), "dilation": _percentiles(d_plus),
+            "erosion": _percentiles(d_minus),
+            "no_inner_fraction": float(np.mean(np.isnan(d_minus)))}
+
+
+def normal_distances(surface: trimesh.Trimesh, sdf_plus: np.ndarray, sdf_minus: np.ndarray,
+                     box: np.ndarray, cfg: ShellConfig, max_points: int = 20000
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # [N, 3], [N], [N]
+    """Distances from the surface f0 = 0 to M+ (outward) and to M- (inward) along the normal.
+
+    At (a subsample of) the M0 vertices p with outward normal n, march t in steps of h/8 and
+    find, by linear interpolation of the trilinearly interpolated grids, the first t with
+    SDF+(p + t n) > 0 (d+) and with SDF-(p - t n) < 0 (d-); NaN where none is within reach
+    (2 zeta + 2 h). Returns the points p and d+, d-.
+    """
     spacing = (box[1] - box[0]) / (np.asarray(sdf_plus.shape) - 1)
-    rng = np.random.default_rng(0)
     verts = np.asarray(surface.vertices)
     normals = np.asarray(surface.vertex_normals)
     if len(verts) > max_points:
-        pick = rng.choice(len(verts), max_points, replace=False)
+        pick = np.random.default_rng(0).choice(len(verts), max_points, replace=False)
         verts, normals = verts[pick], normals[pick]
     step = spacing.min() / 8.0
 
-    def first_crossing(grid, sign, reach):  # sign +1: first t with grid > 0 along +n
+    def first_crossing(grid, sign, reach):  # first t with sign * grid(p + sign t n) > 0
         ts = np.arange(0.0, reach + step, step)
         pts = verts[:, None, :] + sign * ts[None, :, None] * normals[:, None, :]  # [N, T, 3]
         idx = ((pts - box[0]) / spacing).reshape(-1, 3).T
-        vals = ndimage.map_coordinates(grid, idx, order=1, mode="nearest").reshape(pts.shape[:2])
-        vals = vals if sign > 0 else -vals  # now looking for the first value > 0
+        vals = sign * ndimage.map_coordinates(grid, idx, order=1, mode="nearest")
+        vals = vals.reshape(pts.shape[:2])
         hit = vals > 0
         j = np.argmax(hit, axis=1)
-        found = hit[np.arange(len(j)), j]
-        a = vals[np.arange(len(j)), np.maximum(j - 1, 0)]
-        b = vals[np.arange(len(j)), j]
+        rows = np.arange(len(j))
+        a, b = vals[rows, np.maximum(j - 1, 0)], vals[rows, j]
         frac = np.where((j > 0) & (b > a), -a / np.where(b > a, b - a, 1.0), 0.0)
         t = np.where(j > 0, ts[np.maximum(j - 1, 0)] + frac * step, 0.0)
-        return np.where(found, t, np.nan)
+        return np.where(hit[rows, j], t, np.nan)
 
     d_plus = first_crossing(sdf_plus, +1, 2 * cfg.dilate_zeta + 2 * spacing.max())
     d_minus = first_crossing(sdf_minus, -1, 2 * cfg.erode_zeta + 2 * spacing.max())
-    width = d_plus + d_minus
-    return {"band_width": _percentiles(width), "dilation": _percentiles(d_plus),
-            "erosion": _percentiles(d_minus),
-            "no_inner_fraction": float(np.mean(np.isnan(d_minus)))}
+    return verts, d_plus, d_minus
 
 
 def write_shells(shells: Shells, out_dir: str | Path, figure: bool = True) -> None:

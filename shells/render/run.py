@@ -145,8 +145,12 @@ def load_shells(run: RunDir, variant: str | None) -> ShellScene:
 
 def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                width: int | None = None, height: int | None = None,
-               out: str | Path | None = None, progress: bool = True) -> dict[str, Any]:
-    """Render every view of ``split`` and write images + metrics.json; returns the metrics."""
+               out: str | Path | None = None, progress: bool = True,
+               stage: str = "latest") -> dict[str, Any]:
+    """Render every view of ``split`` and write images + metrics.json; returns the metrics.
+
+    ``stage`` picks the checkpoint: 'latest' (stage 2 when present), 'stage1' or 'stage2'.
+    """
     run = RunDir(run_dir)
     meta = _check_run(run, mode)
 
@@ -155,7 +159,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     from shells.fields.drjit_field import DrJitField
     from shells.training import load_field
 
-    field, cfg = load_field(run.root, device="cpu")
+    field, cfg = load_field(run.root, device="cpu", stage=stage)
     rc = cfg.render
     variant = mitsuba_variant(rc.variant)
     scene = load_shells(run, variant) if mode == "band" else None
@@ -172,7 +176,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
         metrics = render_views(dj, cams, data.images if same_size else None, rc, mode, scene,
                                data.aabb, tmp, progress)
         metrics.update({
-            "split": split, "variant": variant,
+            "split": split, "variant": variant, "stage": stage, "out": str(out),
             "device": "cuda" if variant.startswith("cuda") else "cpu",
             "background": list(rc.background), "data": str(meta["data"]),
             "downscale": int(meta.get("downscale", 1)),
