@@ -65,6 +65,12 @@ def build(name: str, seed: int) -> SceneSpec:
     return SCENES[name](np.random.default_rng([seed, 1]))
 
 
+def _sampler_type(spp: int) -> str:
+    """Stratified sub-pixel positions (rim coverage then agrees with the exact alpha) when
+    Mitsuba accepts ``spp`` as is (4**k); otherwise independent samples, so spp stays exact."""
+    return "stratified" if spp >= 4 and 4 ** round(math.log(spp, 4)) == spp else "independent"
+
+
 def load_colour_scene(spec: SceneSpec, res: int, spp: int):
     """Mitsuba scene of the colour pass; the sensor pose is set per view by `_render`."""
     import mitsuba as mi
@@ -75,8 +81,7 @@ def load_colour_scene(spec: SceneSpec, res: int, spp: int):
               "film": {"type": "hdrfilm", "width": res, "height": res, "pixel_format": "rgba",
                        # box filter: each sample lands in its own pixel (no cross-talk)
                        "rfilter": {"type": "box"}},
-              # stratified sub-pixel positions: coverage at edges agrees with the exact alpha
-              "sampler": {"type": "stratified", "sample_count": spp}}
+              "sampler": {"type": _sampler_type(spp), "sample_count": spp}}
     integrator = {"type": "volpath", "max_depth": MAX_DEPTH}
     return mi.load_dict({"type": "scene", "integrator": integrator, "sensor": sensor,
                          **spec.content})

@@ -86,7 +86,8 @@ class ShellConfig:
     beta_d: float = 1.0  # dilation speed per unit kernel size s, 1 / time (not in the paper)
     sigma_min: float = 0.01  # threshold on the kernel size s: no dilation where s <= this
     beta_e: float = 0.3  # erosion speed per unit kernel size s: erodes 1.5 s (not in the paper)
-    v_max: float = 0.04  # cap on both speeds, world units / time (5 * v_max > 2 zeta)
+    v_max: float = 0.035  # cap on both speeds, world units / time: 5 v_max = 0.175 > zeta,
+    # and v_max dt < cfl h up to resolution 256 (one sub-step per step)
     min_component_fraction: float = 0.01  # drop mesh pieces smaller than this share of faces
     chunk: int = 262144  # grid points per field evaluation
 

@@ -8,7 +8,6 @@ import math
 import imageio.v3 as iio
 import numpy as np
 import pytest
-import trimesh
 
 from shells.config import ShellConfig
 from shells.errors import InputError
@@ -38,7 +37,7 @@ def mean_width(f: np.ndarray, s: float | np.ndarray, cfg=None) -> float:
     return sh.stats["band_width"]["mean"]
 
 
-def check_containment(sh, f: np.ndarray, rng, n_random: int = 3000):
+def check_containment(sh, f: np.ndarray, rng, n_points: int = 600):
     """Grid points with f0 <= 0 lie inside M+; points inside M- have f0 <= 0 (on the grid, and
     via trimesh's ray-test `contains` on grid points and random points)."""
     assert (sh.sdf_plus <= f).all() and (sh.sdf_minus >= f).all()
@@ -47,10 +46,10 @@ def check_containment(sh, f: np.ndarray, rng, n_random: int = 3000):
     fv = f.reshape(-1)
     # grid points clearly inside (1e-3 h: away from ray-test round-off on the surface)
     inside0 = pts[fv < -1e-3 * h]
-    pick = rng.choice(len(inside0), min(3000, len(inside0)), replace=False)
+    pick = rng.choice(len(inside0), min(n_points, len(inside0)), replace=False)
     assert sh.outer.contains(inside0[pick]).all()
     if len(sh.inner.faces):
-        cand = rng.uniform(-1, 1, size=(n_random, 3))
+        cand = rng.uniform(-1, 1, size=(n_points, 3))
         inside_inner = cand[sh.inner.contains(cand)]
         # f at those points by trilinear interpolation of the grid: <= 0 up to the marching
         # cubes' own linear-interpolation error (points lie inside M- = {SDF- <= 0} and
@@ -60,8 +59,9 @@ def check_containment(sh, f: np.ndarray, rng, n_random: int = 3000):
         f_at = ndimage.map_coordinates(f, idx, order=1)
         assert (f_at <= 1e-6).all()
         # and grid points inside M- have f0 <= 0 exactly
-        grid_in = sh.inner.contains(pts[::7])
-        assert (fv[::7][grid_in] <= 0).all()
+        sub = rng.choice(len(pts), n_points, replace=False)
+        grid_in = sh.inner.contains(pts[sub])
+        assert (fv[sub][grid_in] <= 0).all()
 
 
 # ------------------------------------------------------------------------------------------
@@ -82,7 +82,7 @@ def test_marching_cubes_closes_surfaces_cut_by_the_box():
     f = np.minimum(sphere(48), sphere(48, 0.3, (0.9, 0, 0)))  # pokes out through x = 1
     m = clean_mesh(marching_cubes(f, BOX))
     assert m.is_watertight and m.volume > 0
-    assert m.bounds[1, 0] <= 1.0 + 1e-3  # capped on the box face, not beyond
+    assert m.bounds[1, 0] == pytest.approx(1.0)  # capped on the box face, not beyond
     assert len(marching_cubes(np.ones((8, 8, 8)), BOX).faces) == 0
 
 
@@ -179,9 +179,9 @@ def test_shells_contain_surface_and_are_watertight(kind):
 
 
 def test_thin_part_has_no_inner_shell():
-    # a sphere of radius 0.03 with a fuzzy kernel: erosion (~0.05) swallows it; the inner mesh
-    # is empty (valid: no interior termination) and the PLY is written with 0 faces
-    f = sphere(48, 0.03)
+    # a sphere of radius 0.04 (8 grid points inside) with a fuzzy kernel: erosion (~0.045)
+    # swallows it; the inner mesh is empty (valid: no interior termination)
+    f = sphere(48, 0.04)
     sh = extract_shells(f, np.full(f.shape, 0.05, np.float32), BOX)
     assert len(sh.inner.faces) == 0 and sh.stats["inner_empty"]
     assert len(sh.outer.faces) > 0

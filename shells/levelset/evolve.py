@@ -38,7 +38,7 @@ the surface density is sigma = 1 / (2 s)):
   sharp kernel changes nothing once the band starts at the surface),
 - erosion   v_e(x) = min(beta_e * s(x), v_max), moving inward.
 
-With the defaults (beta_e = 0.3) an opaque surface is eroded by 5 * 0.3 * s = 1.5 s (0.0075
+With the defaults (beta_d = 1, sigma_min = 0.01, beta_e = 0.3, v_max = 0.035) an opaque surface is eroded by 5 * 0.3 * s = 1.5 s (0.0075
 for s = 0.005, 1.5 % of a radius-0.5 sphere), while a fuzzy region (s = 0.05) is dilated and
 eroded up to the zeta limits (0.1 outward, 0.05 inward).
 """

@@ -25,7 +25,8 @@ from scipy import ndimage
 
 from shells.config import ShellConfig
 from shells.errors import InputError
-from shells.levelset.evolve import shell_sdfs, substeps
+from shells.levelset.evolve import (dilation_velocity, erosion_velocity, shell_sdfs,
+                                    substeps)
 from shells.levelset.grid import check_aabb
 from shells.levelset.mesh import clean_mesh, marching_cubes, write_ply
 
@@ -94,8 +95,9 @@ def extract_shells(f: np.ndarray,  # [X, Y, Z] SDF at the grid points, f > 0 out
         "aabb": box.tolist(),
         "spacing": spacing.tolist(),
         "params": dataclasses.asdict(cfg),
-        "substeps": {"dilate": substeps(cfg.v_max, cfg.dt, spacing, cfg.cfl),
-                     "erode": substeps(cfg.v_max, cfg.dt, spacing, cfg.cfl)},
+        "substeps": {  # per Euler step, from the fastest speed in the grid (an upper bound)
+            "dilate": substeps(float(dilation_velocity(s, cfg).max()), cfg.dt, spacing, cfg.cfl),
+            "erode": substeps(float(erosion_velocity(s, cfg).max()), cfg.dt, spacing, cfg.cfl)},
         "outer_triangles": int(len(outer.faces)),
         "outer_vertices": int(len(outer.vertices)),
         "inner_triangles": int(len(inner.faces)),

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
+from scipy import ndimage
 
 from shells.errors import atomic_write
 from shells.levelset.grid import check_aabb
@@ -64,7 +65,7 @@ def slice_figure(f: np.ndarray, s: np.ndarray,  # [X, Y, Z] input SDF and kernel
         panel = np.repeat(np.repeat(panel, scale, 0), scale, 1)
         for which, colour in _CONTOURS:
             g = to_img((f, sdf_plus, sdf_minus)[which])
-            g = np.repeat(np.repeat(g, scale, 0), scale, 1)
+            g = ndimage.zoom(g, scale, order=1, grid_mode=True, mode="nearest")  # smooth lines
             panel[sign_change(g)] = colour
         panels.append(panel)
     gap = np.ones((panels[0].shape[0], max(4, scale), 3))

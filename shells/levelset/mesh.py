@@ -28,7 +28,7 @@ def marching_cubes(f: np.ndarray,  # [X, Y, Z] SDF samples at the grid points, f
     """Zero level set of ``f`` in world coordinates, closed at the box boundary.
 
     The grid is padded by one layer of large positive values so that a surface cut by the box
-    is capped on the box face (the mesh stays watertight). Exact zeros are nudged outside so no
+    is capped on the box face (the mesh stays watertight; the cap is clipped onto the face). Exact zeros are nudged outside so no
     vertex sits on a grid point (which would create duplicate, degenerate vertices). Returns an
     empty mesh when f has no negative sample.
     """
@@ -42,7 +42,8 @@ def marching_cubes(f: np.ndarray,  # [X, Y, Z] SDF samples at the grid points, f
                     constant_values=big)
     verts, faces, _, _ = measure.marching_cubes(padded, level=0.0, spacing=tuple(spacing),
                                                 allow_degenerate=False)
-    verts = verts + (box[0] - spacing)
+    # caps lie a sliver (|f| / big of a voxel) outside the box: put them on the box face
+    verts = np.clip(verts + (box[0] - spacing), box[0], box[1])
     mesh = trimesh.Trimesh(verts, faces, process=False)
     if mesh.volume < 0:  # keep outward orientation whatever skimage's winding convention is
         mesh.invert()
