@@ -43,10 +43,23 @@ def look_at_gl(eye: np.ndarray,  # [3]
 
 
 def sample_poses(rng: np.random.Generator, n: int, radius: tuple[float, float] = (2.6, 3.0),
-                 ) -> np.ndarray:  # [n, 4, 4] OpenGL c2w
+                 even: bool = False) -> np.ndarray:  # [n, 4, 4] OpenGL c2w
     """``n`` cameras looking at the origin from directions uniform on the sphere, at distances
-    uniform in ``radius`` (content within radius ~0.6 of the origin stays in view)."""
-    dirs = rng.normal(size=(n, 3))
+    uniform in ``radius`` (content within radius ~0.6 of the origin stays in view).
+
+    ``even``: directions on a randomly rotated Fibonacci sphere instead of independent draws, so
+    a few training views still see every side of the content (independent draws leave gaps).
+    """
+    if even and n:
+        k = np.arange(n) + 0.5
+        z = 1.0 - 2.0 * k / n
+        phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+        r = np.sqrt(1.0 - z * z)
+        dirs = np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))  # a random orthogonal matrix
+        dirs = dirs @ q.T
+    else:
+        dirs = rng.normal(size=(n, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     dist = rng.uniform(radius[0], radius[1], size=(n, 1))
     return np.stack([look_at_gl(e) for e in dirs * dist]) if n else np.zeros((0, 4, 4))

@@ -97,6 +97,21 @@ def _render(scene, c2w_gl: np.ndarray, seed: int) -> np.ndarray:  # [H, W, 4] li
     return np.array(mi.render(scene, seed=seed), dtype=np.float64)
 
 
+def _render_finite(scene, c2w_gl: np.ndarray, seed: int, tries: int = 4) -> np.ndarray:
+    """Linear RGB [H, W, 3] of one view. The medium integrator now and then returns a NaN
+    sample, which poisons its pixel: such pixels are re-rendered with the next seeds."""
+    colour = _render(scene, c2w_gl, seed)[..., :3]
+    for retry in range(1, tries):
+        bad = ~np.isfinite(colour).all(-1)
+        if not bad.any():
+            break
+        colour[bad] = _render(scene, c2w_gl, seed + retry)[..., :3][bad]
+    if not np.isfinite(colour).all():
+        raise RuntimeError(f"Mitsuba kept returning NaN pixels for seed {seed}; "
+                           "try another --seed or --spp")
+    return colour
+
+
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 sRGB encoding of linear values in [0, 1]."""
     x = np.clip(x, 0.0, 1.0)
@@ -135,7 +150,7 @@ def make_scene(name: str, out: str | Path, res: int = 64, views: int = 32, test_
     mitsuba_variant(variant)
     out = Path(out)
     rng = np.random.default_rng([seed, 0])
-    poses = {"train": sample_poses(rng, views), "test": sample_poses(rng, test_views)}
+    poses = {"train": sample_poses(rng, views, even=True), "test": sample_poses(rng, test_views)}
     render_seeds = {split: rng.integers(0, 2**31, size=len(p)) for split, p in poses.items()}
     spec = build(name, seed)
     scene = load_colour_scene(spec, res, spp)
@@ -145,7 +160,7 @@ def make_scene(name: str, out: str | Path, res: int = 64, views: int = 32, test_
         frames = []
         for k, c2w in enumerate(c2ws):
             alpha = opacity(spec, c2w, CAMERA_ANGLE_X, res)
-            colour = _render(scene, c2w, int(render_seeds[split][k]))[..., :3]
+            colour = _render_finite(scene, c2w, int(render_seeds[split][k]))
             _write_png(out / split / f"r_{k}.png", to_rgba8(colour, alpha))
             frames.append({"file_path": f"{split}/r_{k}", "transform_matrix": c2w.tolist()})
         records[split] = {"camera_angle_x": CAMERA_ANGLE_X, "aabb": AABB, "scene": spec.meta,

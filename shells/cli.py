@@ -6,7 +6,6 @@ Every command turns an `InputError` into one line on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from typing import Callable, Sequence
 
@@ -118,16 +117,28 @@ def extract_parser() -> argparse.ArgumentParser:
         description="Extract the outer and inner shell meshes (RUN/shells/{outer,inner}.ply) by "
                     "level-set dilation and erosion of the trained SDF.")
     p.add_argument("run", help="run directory written by shells-train")
-    p.add_argument("--resolution", type=int, default=None, help="grid resolution per axis")
+    p.add_argument("--resolution", type=int, default=None,
+                   help="grid points per axis (default: the run's config, 128 toy / 256 paper)")
+    p.add_argument("--fixed-band", type=float, default=None, metavar="W",
+                   help="instead of the adaptive band, the fixed band |f| <= W world units "
+                        "(the paper's ablation baseline)")
     return p
 
 
 def _extract(args: argparse.Namespace) -> int:
     from shells.pipeline import extract_run
 
-    stats = extract_run(args.run, args.resolution)
-    print(f"wrote {args.run}/shells/outer.ply, inner.ply, stats.json, slice.png")
-    print(json.dumps({k: v for k, v in stats.items() if not isinstance(v, dict)}, indent=1))
+    if args.fixed_band is not None and not args.fixed_band > 0:
+        raise InputError(f"--fixed-band {args.fixed_band}: must be > 0 world units (e.g. 0.02)")
+    stats = extract_run(args.run, args.resolution, args.fixed_band)
+    bw = stats.get("band_width", {})
+    print(f"outer: {stats['outer_triangles']} triangles, inner: {stats['inner_triangles']} "
+          f"triangles ({'empty: no interior termination' if stats['inner_empty'] else 'ok'})")
+    if bw.get("count"):
+        print(f"band width: mean {bw['mean']:.4f}, p5 {bw['p5']:.4f}, p95 {bw['p95']:.4f} "
+              f"(world units); volume between shells {stats['volume_between']:.4f}")
+    print(f"grid {stats['resolution'][0]}^3 in {stats['timings']['total']:.1f} s; wrote "
+          f"{args.run}/shells/outer.ply, inner.ply, stats.json, slice.png")
     return 0
 
 

@@ -40,6 +40,7 @@ class FieldConfig:
     init_kernel: float = 0.05  # initial kernel size s (world units) everywhere
     min_kernel: float = 1e-4  # lower clamp on s (numerical safety)
     max_kernel: float = 1.0  # upper clamp on s
+    global_kernel: bool = False  # one learned s for the whole scene (ablation, paper Table 4)
 
 
 @dataclass
@@ -83,8 +84,9 @@ class ShellConfig:
     dilate_curvature: float = 0.01  # lambda_curv for dilation (paper; grid units, smoothing sign)
     erode_zeta: float = 0.05  # soft-falloff width zeta for erosion (paper)
     erode_curvature: float = 0.0  # lambda_curv for erosion (paper)
-    beta_d: float = 1.0  # dilation speed per unit kernel size s, 1 / time (not in the paper)
-    sigma_min: float = 0.01  # threshold on the kernel size s: no dilation where s <= this
+    beta_d: float = 0.6  # dilation speed per unit kernel size s, 1 / time: dilates ~3 s
+    # (not in the paper; chosen on the toy sphere, see shells/levelset/evolve.py)
+    sigma_min: float = 0.0  # threshold on the kernel size s: no dilation where s <= this
     beta_e: float = 0.3  # erosion speed per unit kernel size s: erodes 1.5 s (not in the paper)
     v_max: float = 0.035  # cap on both speeds, world units / time: 5 v_max = 0.175 > zeta,
     # and v_max dt < cfl h up to resolution 256 (one sub-step per step)
@@ -104,6 +106,13 @@ class RenderConfig:
     variant: str | None = None  # Mitsuba variant; None picks cuda_ad_rgb on a GPU, else llvm_ad_rgb
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # colour behind the content
     chunk_samples: int = 1 << 24  # rays per batch are limited to this many samples (worst case)
+    # `occupancy` mode (Instant-NGP / nerfacc baseline, shells/render/occupancy.py):
+    occ_resolution: int = 128  # occupancy-grid cells per axis over the scene box
+    occ_k: float = 5.0  # occupied where |f| < half cell diagonal + occ_k * s (residual T < e^-k)
+    occ_jitter: int = 2  # random points per cell evaluated besides its centre (grid building)
+    occ_step: float = 0.0  # ray-marching step dt (world units); 0 = scene-box diagonal / 1024
+    occ_chunk: int = 16  # samples per ray marched, evaluated and composited per round
+    ert_eps: float = 1e-4  # early ray termination once transmittance drops below this
 
 
 @dataclass
@@ -166,12 +175,17 @@ def toy_config() -> Config:
     a 64x64 toy image cannot use more than a few hundred grid cells per axis.
     """
     cfg = Config()
-    cfg.field = FieldConfig(n_levels=8, log2_hashmap_size=15, base_resolution=8,
+    cfg.field = FieldConfig(n_levels=8, log2_hashmap_size=17, base_resolution=8,
                             max_resolution=256, geo_hidden=64, rad_hidden=64,
                             init_radius=0.5, init_kernel=0.05)
-    cfg.train = TrainConfig(iters=1500, batch_rays=1024, n_samples=48, n_importance=16,
-                            warmup_iters=50, checkpoint_every=250, log_every=25)
+    # lr_mlp 1e-2: the geometric init starts the hash-feature weights at zero, and at 1e-3 they
+    # grow too slowly for a 700-step schedule (the sweep is in BENCHMARKS.md, "Stage 1 toy")
+    cfg.train = TrainConfig(iters=700, batch_rays=1024, n_samples=32, n_importance=16,
+                            lr_mlp=1e-2, warmup_iters=50, checkpoint_every=250, log_every=25)
     cfg.shell = ShellConfig(resolution=128)
+    # single-sample intervals up to 0.03, spacing 0.02: <= 3 samples per covered pixel on the
+    # toy sphere at 0.5 dB from full-ray rendering (BENCHMARKS.md, "Band vs full")
+    cfg.render = RenderConfig(w_s=0.03, delta_s=0.02)
     cfg.finetune = FinetuneConfig(iters=500, batch_rays=1024, checkpoint_every=250, log_every=25)
     return cfg
 

@@ -34,8 +34,8 @@ def render_band(field: ShellField, scene: ShellScene,
                 background: torch.Tensor,  # [3]
                 ) -> dict[str, torch.Tensor]:
     """Differentiable torch rendering of rays with narrow-band samples: color [R, 3], spp [R]."""
-    t, delta, mask = band_samples(scene, origins, dirs, rc)  # [R, S] each
-    t, delta, mask = t.clone(), delta.clone(), mask.clone()  # own the Dr.Jit memory
+    t, delta, mask, solid = band_samples(scene, origins, dirs, rc)  # [R, S] x 3, [R]
+    t, delta, mask, solid = t.clone(), delta.clone(), mask.clone(), solid.clone()  # own them
     R, S = t.shape
     pts = origins[:, None] + t[..., None] * dirs[:, None]  # [R, S, 3]
     d = dirs[:, None].expand(R, S, 3)
@@ -50,7 +50,10 @@ def render_band(field: ShellField, scene: ShellScene,
         cos = cos.masked_scatter(mask, (out["normal"] * d[mask]).sum(-1))
         rgb = rgb.masked_scatter(mask[..., None].expand(R, S, 3), out["rgb"])
     alpha = neus_alpha(sdf, s, cos, delta) * mask
-    color, weights, opacity = composite(alpha, rgb, background)
+    # a ray that reached M- ends on its last sample (the renderer's solid_end_colour)
+    last = rgb[torch.arange(R), (mask.sum(-1) - 1).clamp_min(0)]  # [R, 3]
+    end = torch.where(solid[:, None], last, background.expand(R, 3))
+    color, weights, opacity = composite(alpha, rgb, end)
     return {"color": color, "opacity": opacity, "spp": mask.sum(-1)}
 
 
@@ -127,5 +130,6 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
             save_checkpoint(run.finetune_checkpoint, field, opt, done, cfg)
     bar.close()
     summary = {"step": end, "seconds": time.perf_counter() - t0, "last": last}
-    write_json(run.root / "finetune_summary.json", summary)
+    if end == fc.iters:  # the summary marks a finished stage 2
+        write_json(run.root / "finetune_summary.json", summary)
     return summary

@@ -15,8 +15,12 @@ from shells.errors import InputError
 from shells.run import RunDir
 
 
-def extract_run(run_dir: str | Path, resolution: int | None = None) -> dict[str, Any]:
-    """Sample the stage-1 field on a grid, extract M+ and M-, write RUN/shells/; returns stats."""
+def extract_run(run_dir: str | Path, resolution: int | None = None,
+                fixed_width: float | None = None) -> dict[str, Any]:
+    """Sample the stage-1 field on a grid, extract M+ and M-, write RUN/shells/; returns stats.
+
+    ``fixed_width`` w gives the fixed band {|f| <= w} instead of the adaptive one (ablation).
+    """
     from shells.levelset.extract import extract_shells, write_shells
     from shells.levelset.grid import sample_grid
     from shells.training import load_field
@@ -36,7 +40,7 @@ def extract_run(run_dir: str | Path, resolution: int | None = None) -> dict[str,
     t0 = time.perf_counter()
     f, s, _ = sample_grid(fn, field.aabb.cpu().numpy(), sc.resolution, sc.chunk)
     t_grid = time.perf_counter() - t0
-    shells = extract_shells(f, s, field.aabb.cpu().numpy(), sc)
+    shells = extract_shells(f, s, field.aabb.cpu().numpy(), sc, fixed_width=fixed_width)
     shells.stats.setdefault("timings", {})["sample_grid"] = t_grid
     shells.stats["timings"]["total"] = time.perf_counter() - t0
     write_shells(shells, run.shells)

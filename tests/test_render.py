@@ -41,13 +41,17 @@ def torch_band_render(field_fn, scene, o, d, cfg):  # -> colour [R, 3], samples 
     field_fn(x [N, 3], d [N, 3]) -> sdf [N], s [N], normal [N, 3], rgb [N, 3]."""
     from shells.render.sampler import band_samples
 
-    t, delta, mask = band_samples(scene, o, d, cfg)
+    t, delta, mask, solid = band_samples(scene, o, d, cfg)
     R, S = t.shape
     x = (o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)
     dd = d[:, None].expand(R, S, 3).reshape(-1, 3)
     sdf, s, normal, rgb = field_fn(x, dd)
     alpha = neus.neus_alpha(sdf, s, (dd * normal).sum(-1), delta.reshape(-1)).reshape(R, S)
-    colour, _, _ = neus.composite(alpha * mask, rgb.reshape(R, S, 3), torch.tensor(cfg.background))
+    rgb = rgb.reshape(R, S, 3)
+    # rays that reach M- end on their last sample's colour, the others on the background
+    last = torch.stack([rgb[r, max(int(mask[r].sum()) - 1, 0)] for r in range(R)])
+    end = torch.where(solid[:, None], last, torch.tensor(cfg.background).expand(R, 3))
+    colour, _, _ = neus.composite(alpha * mask, rgb, end)
     return colour, mask.sum(1)
 
 

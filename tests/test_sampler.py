@@ -102,11 +102,12 @@ def test_band_samples_on_concentric_spheres():
     scene = ShellScene((outer.vertices, outer.faces), (inner.vertices, inner.faces))
     o = torch.tensor([[0.0, 0.0, -3.0], [3.0, 0.0, -3.0]])
     d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
-    t, delta, mask = band_samples(scene, o, d, CFG)
+    t, delta, mask, solid = band_samples(scene, o, d, CFG)
     # axis ray: interval [2.0, 2.5] (outer at z = -1, inner at z = -0.5), w = 0.5
     # N = min(ceil(0.49 / 0.01) + 1, 16) = 16 -> t = 2 + 0.5 * (j + 1) / 17, delta = 0.5 / 16
     # tolerance: icosphere sagitta ~2e-4 on each end (see test_raycast)
     assert mask.sum(1).tolist() == [16, 0]
+    assert solid.tolist() == [True, False]  # the axis ray ends on M-, the other misses both
     np.testing.assert_allclose(t[0].numpy(), 2.0 + 0.5 * np.arange(1, 17) / 17, atol=5e-4)
     np.testing.assert_allclose(delta[0].numpy(), 0.5 / 16, atol=5e-5)
     assert t.dtype == torch.float32 and mask.dtype == torch.bool

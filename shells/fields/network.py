@@ -77,6 +77,12 @@ class ShellField(nn.Module):
         t = (math.log(cfg.init_kernel) - self.log_kmin) / self.log_krange
         self.kernel_z0 = math.log(t / (1.0 - t))  # logit: sigmoid(z0) = t
         self.geometric_init()
+        if cfg.global_kernel:
+            # the kernel row of the last layer stays zero: s depends on its bias only, one
+            # learned scalar (the Dr.Jit twin evaluates the same layer unchanged)
+            mask = torch.ones_like(self.geo_mlp[2].weight)
+            mask[1] = 0.0
+            self.geo_mlp[2].weight.register_hook(lambda g: g * mask.to(g))
 
     # -- initialisation ------------------------------------------------------------------------
     @torch.no_grad()

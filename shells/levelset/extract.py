@@ -70,14 +70,24 @@ def extract_shells(f: np.ndarray,  # [X, Y, Z] SDF at the grid points, f > 0 out
                    s: np.ndarray,  # [X, Y, Z] kernel size, world units
                    aabb,  # [2, 3] box whose corners are the first / last grid points
                    cfg: ShellConfig | None = None,
-                   device: str | torch.device = "cpu") -> Shells:
-    """Dilate / erode f by the kernel-dependent speeds and mesh both shells."""
+                   device: str | torch.device = "cpu",
+                   fixed_width: float | None = None) -> Shells:
+    """Dilate / erode f by the kernel-dependent speeds and mesh both shells.
+
+    ``fixed_width`` w replaces the adaptive band by the fixed one {|f| <= w} (SDF+ = f - w,
+    SDF- = f + w): the baseline of the paper's ablation (Table 4, "fixed +-w").
+    """
     cfg = cfg if cfg is not None else ShellConfig()
     f, s, box = check_field(f, s, aabb)
     spacing = (box[1] - box[0]) / (np.asarray(f.shape) - 1)
     timings = {}
     t0 = time.perf_counter()
-    sdf_plus, sdf_minus = shell_sdfs(f, s, spacing, cfg, device)
+    if fixed_width is None:
+        sdf_plus, sdf_minus = shell_sdfs(f, s, spacing, cfg, device)
+    else:
+        if not fixed_width > 0:
+            raise InputError(f"fixed band width {fixed_width}: must be > 0 world units")
+        sdf_plus, sdf_minus = f - np.float32(fixed_width), f + np.float32(fixed_width)
     timings["evolve"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -95,6 +105,7 @@ def extract_shells(f: np.ndarray,  # [X, Y, Z] SDF at the grid points, f > 0 out
         "aabb": box.tolist(),
         "spacing": spacing.tolist(),
         "params": dataclasses.asdict(cfg),
+        "band": "adaptive" if fixed_width is None else f"fixed +-{fixed_width:g}",
         "substeps": {  # per Euler step, from the fastest speed in the grid (an upper bound)
             "dilate": substeps(float(dilation_velocity(s, cfg).max()), cfg.dt, spacing, cfg.cfl),
             "erode": substeps(float(erosion_velocity(s, cfg).max()), cfg.dt, spacing, cfg.cfl)},

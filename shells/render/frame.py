@@ -2,12 +2,17 @@
 
 Per batch of rays (§3.4, §4.2):
 
-    band: rays -> M+/M- intervals (raycast) -> Procedure 3 samples (sampler, packed)
+    band: rays -> M+/M- intervals (raycast) -> Procedure 3 samples (sampler, packed); a ray
+          that reaches M- (the solid interior) ends there, its remaining transmittance taking
+          the colour of its last sample instead of the background (`solid_end_colour`)
     full: rays -> scene-box interval          -> cfg.full_samples samples per ray (same placement
           with a fixed count: linspace(near, far, N + 2)[1:-1], sections of (far - near) / N)
     then: one batched field evaluation at all samples -> NeuS alpha (shells.fields.neus, the
           formula shared with training) with cos = d . n and the sample's section length ->
           front-to-back compositing per ray over the background.
+    occupancy: occupancy-grid ray marching with empty-space skipping and early termination
+          (the Instant-NGP / nerfacc baseline, shells.render.occupancy): same NeuS alpha and
+          compositing, in rounds of cfg.occ_chunk samples per ray.
 
 The field is anything with ``eval(x, d) -> FieldSample`` (``shells.fields.drjit_field``:
 .sdf, .s Float [M]; .normal, .rgb 3-vectors [M]) on Dr.Jit arrays x, d (3-vectors of width M),
@@ -29,7 +34,7 @@ from shells.fields.neus import neus_alpha
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import PackedSamples, place_packed
 
-MODES = ("band", "full")
+MODES = ("band", "full", "occupancy")
 
 
 @dr.syntax
@@ -66,13 +71,26 @@ def shade_samples(field: Any, samples: PackedSamples, o: Any, d: Any) -> tuple[A
     return alpha, rgb
 
 
+def solid_end_colour(rgb: Any,  # mi.Color3f [M] packed sample colours
+                     samples: PackedSamples,
+                     t_inner: Any,  # mi.Float [R] first M- hit, inf if none
+                     background: Any,  # mi.Color3f, width 1
+                     ) -> Any:  # mi.Color3f [R]
+    """What a ray sees behind its last sample: M- bounds the solid interior, so a ray that
+    reached it is absorbed there and its remaining transmittance takes the colour of its last
+    sample (the surface it ended on); other rays see the background."""
+    solid = dr.isfinite(t_inner) & (samples.count > 0)
+    last = dr.gather(mi.Color3f, rgb, samples.start + samples.count - 1, solid)
+    return dr.select(solid, last, background)
+
+
 def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
                 origins: Any,  # [R, 3] torch/numpy or mi.Point3f
                 dirs: Any,  # [R, 3] unit directions
                 cfg: RenderConfig,
                 mode: str = "band",
                 scene: ShellScene | None = None,  # needed in band mode
-                aabb: Any = None,  # [2, 3] scene box, needed in full mode
+                aabb: Any = None,  # [2, 3] scene box, needed in full and occupancy modes
                 ) -> tuple[Any, Any]:  # colour mi.Color3f [R], samples per ray mi.UInt32 [R]
     """Colour of each ray over cfg.background, and how many field samples it took."""
     o = to_point3f(origins, mi.Point3f)
@@ -80,18 +98,27 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
     if mode == "band":
         if scene is None:
             raise InputError("band mode needs the shells: pass a ShellScene")
-        samples = place_packed(scene.intervals(o, d, cfg.dp_max), cfg)
+        iv = scene.intervals(o, d, cfg.dp_max)
+        samples = place_packed(iv, cfg)
     elif mode == "full":
         if aabb is None:
             raise InputError("full mode needs the scene box: pass aabb [2, 3]")
         samples = place_packed(box_intervals(o, d, aabb), cfg, fixed=cfg.full_samples)
+    elif mode == "occupancy":
+        from shells.render.occupancy import render_occupancy  # imports this module
+
+        colour, _, count = render_occupancy(field, o, d, cfg, aabb)
+        return colour, count
     else:
         raise InputError(f"mode '{mode}': expected one of {MODES}")
     bg = mi.Color3f(*[float(c) for c in cfg.background])
     if samples.size == 0:
         return dr.zeros(mi.Color3f, dr.width(d)) + bg, samples.count
     alpha, rgb = shade_samples(field, samples, o, d)
-    colour, _ = composite(alpha, rgb, samples.start, samples.count, bg)
+    end = bg
+    if mode == "band":
+        end = solid_end_colour(rgb, samples, iv.t_inner.array, bg)
+    colour, _ = composite(alpha, rgb, samples.start, samples.count, end)
     dr.eval(colour, samples.count)
     return colour, samples.count
 
@@ -109,7 +136,8 @@ def render_image(field: Any,
     R = height * width
     if origins.shape[0] != R or dirs.shape[0] != R:
         raise InputError(f"{origins.shape[0]} rays for a {width}x{height} image")
-    per_ray = cfg.full_samples if mode == "full" else ((cfg.dp_max + 1) // 2) * cfg.n_max
+    per_ray = {"full": cfg.full_samples,  # occupancy: samples held per live ray and round
+               "occupancy": cfg.occ_chunk}.get(mode, ((cfg.dp_max + 1) // 2) * cfg.n_max)
     chunk = max(1, cfg.chunk_samples // max(per_ray, 1))
     rgbs, spps = [], []
     for a in range(0, R, chunk):

@@ -144,6 +144,11 @@ def band_samples(scene: ShellScene,
                  origins: Any,  # [R, 3] torch (or Dr.Jit Point3f)
                  dirs: Any,  # [R, 3] unit directions
                  cfg: RenderConfig,
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Stage-2 training samples: t [R, S], delta [R, S], mask [R, S] bool (torch, no grad)."""
-    return place_padded(scene.intervals(origins, dirs, cfg.dp_max), cfg)
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stage-2 training samples: t [R, S], delta [R, S], mask [R, S] bool and solid [R] bool
+    (the ray reached M-: its remaining transmittance ends on its last sample, as in
+    `shells.render.frame.solid_end_colour`), torch, no grad."""
+    iv = scene.intervals(origins, dirs, cfg.dp_max)
+    t, delta, mask = place_padded(iv, cfg)
+    solid = torch.isfinite(iv.t_inner.torch().reshape(-1)) & mask.any(-1)
+    return t, delta, mask, solid

@@ -1,0 +1,164 @@
+"""The paper's ablation (Table 4) on a toy scene: kernel, band and fine-tuning.
+
+    python bench/ablation.py --scene core-fuzz --out bench/out/ablation-core-fuzz
+
+Rows (all scored on the test split, same protocol as `shells-render`):
+- full ray, stage 1: the volumetric baseline (dense samples along the whole ray);
+- global kernel (one learned s for the scene) vs spatially varying kernel, each with its
+  adaptive band, before and after stage-2 fine-tuning;
+- the varying-kernel field inside fixed bands |f| <= 0.02 and |f| <= 0.05 instead of the
+  adaptive band, before and after fine-tuning.
+
+Every step is skipped when its output already exists, so an interrupted run continues where it
+stopped. Variant runs share the stage-1 checkpoint by symbolic link. The table is printed and
+written to OUT/ablation.md and OUT/ablation.json; `--append FILE` also appends it to FILE
+(e.g. BENCHMARKS.md) with the command, machine and date.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+import torch
+
+from scenes import make_scene
+from shells.config import toy_config
+from shells.errors import atomic_write
+from shells.finetune import finetune
+from shells.pipeline import extract_run
+from shells.render.run import render_run
+from shells.run import RunDir
+from shells.training import train
+
+
+def trained(data: Path, run: Path, global_kernel: bool, iters: int | None) -> Path:
+    if not RunDir(run).checkpoint.is_file() or not (run / "train_summary.json").is_file():
+        cfg = toy_config()
+        cfg.field.global_kernel = global_kernel
+        train(data, run, cfg, torch.device("cpu"), iters=iters, resume=RunDir(run).checkpoint.is_file())
+    return run
+
+
+def current_settings(run: Path) -> None:
+    """Shell, render and stage-2 settings of the stage-1 checkpoint set to the current toy
+    preset (they do not influence stage 1), so the table always reflects today's defaults."""
+    path = RunDir(run).checkpoint
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    toy = toy_config().to_dict()
+    if all(ckpt["config"][k] == toy[k] for k in ("shell", "render", "finetune")):
+        return
+    for k in ("shell", "render", "finetune"):
+        ckpt["config"][k] = toy[k]
+    atomic_write(path, lambda p: torch.save(ckpt, p))
+
+
+def variant(base: Path, path: Path) -> Path:
+    """A run directory sharing base's stage-1 checkpoint (its own shells and stage 2)."""
+    path.mkdir(parents=True, exist_ok=True)
+    for name in ("checkpoint.pt", "run.json", "config.json", "train_summary.json"):
+        if not (path / name).exists():
+            os.symlink((base / name).resolve(), path / name)
+    return path
+
+
+def shells(run: Path, fixed: float | None) -> dict:
+    stats = run / "shells" / "stats.json"
+    if not stats.is_file():
+        extract_run(run, fixed_width=fixed)
+    return json.loads(stats.read_text())
+
+
+def rendered(run: Path, mode: str, stage: str) -> dict:
+    out = run / f"render-{mode}-{stage}"
+    if not (out / "metrics.json").is_file():
+        render_run(run, mode=mode, stage=stage, out=out)
+    return json.loads((out / "metrics.json").read_text())
+
+
+def finetuned(run: Path, iters: int | None) -> Path:
+    if not (run / "finetune_summary.json").is_file():
+        finetune(run, iters=iters, resume=RunDir(run).finetune_checkpoint.is_file())
+    return run
+
+
+def ablation(scene: str, out: Path, iters: int | None, ft_iters: int | None,
+             res: int, views: int) -> list[dict]:
+    data = out / "data"
+    if not (data / "transforms_test.json").is_file():
+        make_scene(scene, data, res=res, views=views)
+    varying = trained(data, out / "varying", False, iters)
+    glob = trained(data, out / "global", True, iters)
+    current_settings(varying)
+    current_settings(glob)
+    runs = {  # name -> (run dir, kernel, band)
+        "global": (glob, "global", "adaptive", None),
+        "varying": (varying, "varying", "adaptive", None),
+        "fixed-0.02": (variant(varying, out / "fixed-0.02"), "varying", "fixed ±0.02", 0.02),
+        "fixed-0.05": (variant(varying, out / "fixed-0.05"), "varying", "fixed ±0.05", 0.05),
+    }
+    rows = []
+    for name in ("varying", "global"):
+        m = rendered(runs[name][0], "full", "stage1")
+        rows.append({"kernel": runs[name][1], "band": "full ray (volumetric)", "finetune": "no",
+                     "band_width_mean": None, **_scores(m)})
+    for name, (run, kernel, band, fixed) in runs.items():
+        st = shells(run, fixed)
+        width = st.get("band_width", {}).get("mean")
+        rows.append({"kernel": kernel, "band": band, "finetune": "no", "band_width_mean": width,
+                     **_scores(rendered(run, "band", "stage1"))})
+        finetuned(run, ft_iters)
+        rows.append({"kernel": kernel, "band": band, "finetune": "yes", "band_width_mean": width,
+                     **_scores(rendered(run, "band", "stage2"))})
+    return rows
+
+
+def _scores(m: dict) -> dict:
+    return {k: m.get(k) for k in ("psnr", "ssim", "samples_per_pixel", "ms_per_frame",
+                                  "samples_per_covered_pixel")}
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| kernel | band | fine-tuned | band width (mean) | PSNR | SSIM | samples/px | ms/frame |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        w = "—" if r["band_width_mean"] is None else f"{r['band_width_mean']:.4f}"
+        lines.append(f"| {r['kernel']} | {r['band']} | {r['finetune']} | {w} | {r['psnr']:.2f} | "
+                     f"{r['ssim']:.4f} | {r['samples_per_pixel']:.2f} | {r['ms_per_frame']:.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="Paper Table 4 ablation on a toy scene (CPU).")
+    p.add_argument("--scene", default="core-fuzz", choices=["sphere", "fuzzy-sphere", "core-fuzz"])
+    p.add_argument("--out", required=True, help="work directory (reused: finished steps are skipped)")
+    p.add_argument("--iters", type=int, default=None, help="stage-1 steps (default: toy preset)")
+    p.add_argument("--finetune-iters", type=int, default=None,
+                   help="stage-2 steps (default: toy preset)")
+    p.add_argument("--res", type=int, default=64)
+    p.add_argument("--views", type=int, default=32)
+    p.add_argument("--append", default=None, help="append the table to this Markdown file")
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    rows = ablation(args.scene, out, args.iters, args.finetune_iters, args.res, args.views)
+    md = table(rows)
+    print(md)
+    (out / "ablation.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (out / "ablation.md").write_text(md + "\n")
+    if args.append:
+        cmd = "python bench/ablation.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        head = (f"\n### Ablation (Table 4), `{args.scene}` — {datetime.date.today()}\n\n"
+                f"Command: `{cmd}`  \nMachine: {platform.machine()}, {os.cpu_count()} CPU cores, "
+                f"torch {torch.__version__} (CPU), no GPU.\n\n")
+        with open(args.append, "a") as fh:
+            fh.write(head + md + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
