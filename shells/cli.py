@@ -177,7 +177,10 @@ def render_parser() -> argparse.ArgumentParser:
                     "dense sampling along the whole ray (full); writes PNGs and metrics.json.")
     p.add_argument("run", help="run directory")
     p.add_argument("--split", default="test", help="data split to render (default test)")
-    p.add_argument("--mode", choices=["band", "full"], default="band")
+    p.add_argument("--mode", choices=["band", "full", "occupancy"], default="band",
+                   help="band: samples between the shells (default); full: dense samples along "
+                        "the whole ray (baseline); occupancy: occupancy-grid ray marching with "
+                        "empty-space skipping and early termination (Instant-NGP-style baseline)")
     p.add_argument("--width", type=int, default=None, help="output width (default: data set's)")
     p.add_argument("--height", type=int, default=None, help="output height")
     p.add_argument("--out", default=None, help="output directory (default RUN/render-MODE)")
