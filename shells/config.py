@@ -180,7 +180,7 @@ def toy_config() -> Config:
                             init_radius=0.5, init_kernel=0.05)
     # lr_mlp 1e-2: the geometric init starts the hash-feature weights at zero, and at 1e-3 they
     # grow too slowly for a 700-step schedule (the sweep is in BENCHMARKS.md, "Stage 1 toy")
-    cfg.train = TrainConfig(iters=700, batch_rays=1024, n_samples=32, n_importance=16,
+    cfg.train = TrainConfig(iters=600, batch_rays=1024, n_samples=32, n_importance=16,
                             lr_mlp=1e-2, warmup_iters=50, checkpoint_every=250, log_every=25)
     cfg.shell = ShellConfig(resolution=128)
     # single-sample intervals up to 0.03, spacing 0.02: <= 3 samples per covered pixel on the
