@@ -179,7 +179,7 @@ def toy_config() -> Config:
                             max_resolution=256, geo_hidden=64, rad_hidden=64,
                             init_radius=0.5, init_kernel=0.05)
     # lr_mlp 1e-2: the geometric init starts the hash-feature weights at zero, and at 1e-3 they
-    # grow too slowly for a 700-step schedule (the sweep is in BENCHMARKS.md, "Stage 1 toy")
+    # grow too slowly for a 600-step schedule (the sweep is in BENCHMARKS.md, "Stage 1 toy")
     cfg.train = TrainConfig(iters=600, batch_rays=1024, n_samples=32, n_importance=16,
                             lr_mlp=1e-2, warmup_iters=50, checkpoint_every=250, log_every=25)
     cfg.shell = ShellConfig(resolution=128)

@@ -38,9 +38,10 @@ def extract_run(run_dir: str | Path, resolution: int | None = None,
         return g["sdf"], g["s"]
 
     t0 = time.perf_counter()
-    # exact where the evolution and the meshes look (|f| < zeta + 2 h), coarse elsewhere
+    # exact where the evolution and the meshes look (|f| < zeta or the fixed width, + 2 h),
+    # coarse elsewhere
     h = float((field.aabb[1] - field.aabb[0]).max()) / (sc.resolution - 1)
-    band = max(sc.dilate_zeta, sc.erode_zeta) + 2.0 * h
+    band = max(sc.dilate_zeta, sc.erode_zeta, fixed_width or 0.0) + 2.0 * h
     f, s, _, exact = sample_grid_banded(fn, field.aabb.cpu().numpy(), sc.resolution, band,
                                         sc.chunk)
     t_grid = time.perf_counter() - t0
