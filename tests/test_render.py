@@ -298,3 +298,23 @@ def test_render_run_end_to_end(tmp_path, tiny_blender):
     assert (mf["width"], mf["height"], mf["psnr"]) == (8, 8, None)
     assert mf["samples_per_pixel"] == 32.0  # every ray of these cameras crosses the box
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp leftovers
+
+
+def test_ray_reaching_the_inner_shell_is_absorbed_there():
+    # a very thin band (+-0.01) around a sphere with a wide kernel (s = 0.05): the band holds
+    # only 1 - sigmoid(-0.2) / sigmoid(0.2) = 0.33 of the opacity (NeuS alpha of one section
+    # from f = +0.01 to -0.01). M- bounds the solid interior, so the rest of the light ends on
+    # the last sample's colour, not on the background: the axis ray shows the sphere's front
+    # colour (0.5, 0.5, 0), not a mix with the white background (blue ~0.67 if it leaked).
+    mitsuba_variant()
+    outer = trimesh.creation.icosphere(subdivisions=5, radius=0.51)
+    inner = trimesh.creation.icosphere(subdivisions=5, radius=0.49)
+    scene = ShellScene((outer.vertices, outer.faces), (inner.vertices, inner.faces))
+    o = torch.tensor([[0.0, 0.0, -2.5], [0.0, 0.505, -2.5]])
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    colour, count = render_rays(SphereField(s=0.05), o, d, RenderConfig(), "band", scene=scene)
+    c = np.asarray(colour)  # [3, R]
+    assert count.numpy().tolist()[0] >= 1
+    np.testing.assert_allclose(c[:, 0], [0.5, 0.5, 0.0], atol=0.02)
+    # the grazing ray crosses the band without reaching M-: it does see the background
+    assert c[2, 1] > 0.5
