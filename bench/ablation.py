@@ -41,7 +41,8 @@ def trained(data: Path, run: Path, global_kernel: bool, iters: int | None) -> Pa
     if not RunDir(run).checkpoint.is_file() or not (run / "train_summary.json").is_file():
         cfg = toy_config()
         cfg.field.global_kernel = global_kernel
-        train(data, run, cfg, torch.device("cpu"), iters=iters, resume=RunDir(run).checkpoint.is_file())
+        train(data, run, cfg, torch.device("cpu"), iters=iters,
+              resume=RunDir(run).checkpoint.is_file())
     return run
 
 
@@ -124,8 +125,8 @@ def _scores(m: dict) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| kernel | band | fine-tuned | band width (mean) | PSNR | SSIM | samples/px | ms/frame |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| kernel | band | fine-tuned | band width (mean) | PSNR | SSIM | samples/px "
+             "| ms/frame |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         w = "—" if r["band_width_mean"] is None else f"{r['band_width_mean']:.4f}"
         lines.append(f"| {r['kernel']} | {r['band']} | {r['finetune']} | {w} | {r['psnr']:.2f} | "
@@ -136,7 +137,8 @@ def table(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description="Paper Table 4 ablation on a toy scene (CPU).")
     p.add_argument("--scene", default="core-fuzz", choices=["sphere", "fuzzy-sphere", "core-fuzz"])
-    p.add_argument("--out", required=True, help="work directory (reused: finished steps are skipped)")
+    p.add_argument("--out", required=True,
+                   help="work directory (reused: finished steps are skipped)")
     p.add_argument("--iters", type=int, default=None, help="stage-1 steps (default: toy preset)")
     p.add_argument("--finetune-iters", type=int, default=None,
                    help="stage-2 steps (default: toy preset)")

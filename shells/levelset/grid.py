@@ -97,5 +97,6 @@ def sample_grid_banded(fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Te
             sdf, kernel = fn(lo + ijk.to(torch.float32) * h)
             f[idx] = sdf.reshape(-1).float().cpu().numpy()
             s[idx] = kernel.reshape(-1).float().cpu().numpy()
-    return (f.reshape(res, res, res).astype(np.float32), s.reshape(res, res, res).astype(np.float32),
-            spacing, len(todo) / res ** 3)
+    shape = (res, res, res)
+    return (f.reshape(shape).astype(np.float32), s.reshape(shape).astype(np.float32), spacing,
+            len(todo) / res ** 3)

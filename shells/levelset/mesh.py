@@ -28,9 +28,9 @@ def marching_cubes(f: np.ndarray,  # [X, Y, Z] SDF samples at the grid points, f
     """Zero level set of ``f`` in world coordinates, closed at the box boundary.
 
     The grid is padded by one layer of large positive values so that a surface cut by the box
-    is capped on the box face (the mesh stays watertight; the cap is clipped onto the face). Exact zeros are nudged outside so no
-    vertex sits on a grid point (which would create duplicate, degenerate vertices). Returns an
-    empty mesh when f has no negative sample.
+    is capped on the box face (the mesh stays watertight; the cap is clipped onto the face).
+    Exact zeros are nudged outside so no vertex sits on a grid point (which would create
+    duplicate, degenerate vertices). Returns an empty mesh when f has no negative sample.
     """
     f = np.asarray(f, dtype=np.float32)
     box = check_aabb(aabb)
