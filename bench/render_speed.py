@@ -42,7 +42,7 @@ from typing import Any
 import drjit as dr
 
 from shells.errors import InputError
-from shells.render.run import _check_run, load_shells, render_views, resized_cameras
+from shells.render.run import check_run, load_shells, render_views, resized_cameras
 from shells.run import RunDir
 
 LABELS = {
@@ -194,7 +194,7 @@ def run_bench(run_dir: Path, split: str = "test", width: int | None = None,
     from shells.training import load_field
 
     run = RunDir(run_dir)
-    meta = _check_run(run, "band")  # needs run.json, a checkpoint and the outer shell
+    meta = check_run(run, "band")  # needs run.json, a checkpoint and the outer shell
     field, cfg = load_field(run.root, device="cpu", stage=stage)
     rc = dataclasses.replace(cfg.render, **(overrides or {}))
     variant = mitsuba_variant(rc.variant)

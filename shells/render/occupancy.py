@@ -61,6 +61,7 @@ import torch
 
 from shells.config import RenderConfig
 from shells.errors import InputError
+from shells.levelset.grid import check_aabb
 from shells.render.frame import composite, shade_samples
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import PackedSamples
@@ -90,10 +91,8 @@ class OccupancyGrid:
 
 
 def _box(aabb: Any) -> torch.Tensor:  # -> [2, 3] float64 (min, max)
-    box = torch.as_tensor(aabb, dtype=torch.float64).cpu()
-    if box.shape != (2, 3) or not bool((box[1] > box[0]).all()):
-        raise InputError(f"aabb {box.tolist()}: expected [2, 3] (min, max) with max > min")
-    return box
+    """The scene box, validated once by the project's own check (shells.levelset.grid)."""
+    return torch.from_numpy(check_aabb(torch.as_tensor(aabb).detach().cpu().numpy()))
 
 
 def _eval_f_s(field: Any, x: torch.Tensor  # [P, 3] float32 world points

@@ -118,7 +118,7 @@ def render_views(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
     }
 
 
-def _check_run(run: RunDir, mode: str) -> dict[str, Any]:
+def check_run(run: RunDir, mode: str) -> dict[str, Any]:
     """Fail early, before anything is loaded or written."""
     if mode not in MODES:
         raise InputError(f"--mode {mode}: expected one of {MODES}")
@@ -152,7 +152,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     ``stage`` picks the checkpoint: 'latest' (stage 2 when present), 'stage1' or 'stage2'.
     """
     run = RunDir(run_dir)
-    meta = _check_run(run, mode)
+    meta = check_run(run, mode)
 
     from shells.datasets import load_dataset
     from shells.device import mitsuba_variant
