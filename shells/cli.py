@@ -122,6 +122,9 @@ def extract_parser() -> argparse.ArgumentParser:
     p.add_argument("--fixed-band", type=float, default=None, metavar="W",
                    help="instead of the adaptive band, the fixed band |f| <= W world units "
                         "(the paper's ablation baseline)")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="JSON file with a 'shell' section overriding the run's settings "
+                        "(see shells/config.py), e.g. {\"shell\": {\"dilate_zeta\": 0.2}}")
     return p
 
 
@@ -130,7 +133,7 @@ def _extract(args: argparse.Namespace) -> int:
 
     if args.fixed_band is not None and not args.fixed_band > 0:
         raise InputError(f"--fixed-band {args.fixed_band}: must be > 0 world units (e.g. 0.02)")
-    stats = extract_run(args.run, args.resolution, args.fixed_band)
+    stats = extract_run(args.run, args.resolution, args.fixed_band, args.config)
     bw = stats.get("band_width", {})
     print(f"outer: {stats['outer_triangles']} triangles, inner: {stats['inner_triangles']} "
           f"triangles ({'empty: no interior termination' if stats['inner_empty'] else 'ok'})")
@@ -153,6 +156,9 @@ def finetune_parser() -> argparse.ArgumentParser:
     p.add_argument("run", help="run directory with a checkpoint and shells")
     p.add_argument("--iters", type=int, default=None, help="fine-tuning steps")
     p.add_argument("--resume", action="store_true", help="continue from the last stage-2 checkpoint")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="JSON file with 'finetune' and/or 'render' sections overriding the "
+                        "run's settings (see shells/config.py), e.g. {\"finetune\": {\"iters\": 1000}}")
     return p
 
 
@@ -161,7 +167,7 @@ def _finetune(args: argparse.Namespace) -> int:
 
     if args.iters is not None and args.iters < 1:
         raise InputError(f"--iters {args.iters}: must be at least 1")
-    summary = finetune(args.run, iters=args.iters, resume=args.resume)
+    summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config)
     print(f"stage 2 done ({summary['step']} steps); checkpoint {args.run}/finetune.pt")
     return 0
 
@@ -186,6 +192,9 @@ def render_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="output directory (default RUN/render-MODE)")
     p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest",
                    help="which checkpoint: stage 2 when present (latest, default), or explicit")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="JSON file with a 'render' section overriding the run's settings "
+                        "(see shells/config.py), e.g. {\"render\": {\"delta_s\": 0.01}}")
     return p
 
 
@@ -197,7 +206,7 @@ def _render(args: argparse.Namespace) -> int:
         if v is not None and v < 1:
             raise InputError(f"--{name} {v}: must be a positive number of pixels")
     m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
-                   height=args.height, out=args.out, stage=args.stage)
+                   height=args.height, out=args.out, stage=args.stage, config=args.config)
     fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
     print(f"{m['mode']}: PSNR {fmt(m.get('psnr'), '.2f')} dB, SSIM {fmt(m.get('ssim'), '.4f')}, "
           f"{m['samples_per_pixel']:.2f} samples/pixel, {m['ms_per_frame']:.1f} ms/frame "

@@ -165,7 +165,21 @@ class Config:
                     raise InputError(f"{source}: unknown key '{name}.{key}'; valid: {sorted(valid)}")
                 if isinstance(value, list):
                     value = tuple(value)
+                _check_type(value, valid[key].type, f"{source}: '{name}.{key}'")
                 setattr(sub, key, value)
+
+
+def _check_type(value: Any, annotation: Any, where: str) -> None:
+    """One-line error when a config value has the wrong JSON type (int accepted for float)."""
+    ann = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
+    ok = {"float": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+          "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
+          "bool": lambda v: isinstance(v, bool),
+          "str": lambda v: isinstance(v, str)}.get(ann.split("[")[0])
+    if ann.startswith("tuple"):
+        ok = lambda v: isinstance(v, tuple)  # noqa: E731
+    if ok is not None and not ok(value):
+        raise InputError(f"{where} = {value!r}: expected {ann}")
 
 
 def toy_config() -> Config:
@@ -190,11 +204,8 @@ def toy_config() -> Config:
     return cfg
 
 
-def load_config(path: str | Path | None, base: Config | None = None) -> Config:
-    """Read a JSON config file on top of ``base`` (default: paper defaults)."""
-    cfg = base if base is not None else Config()
-    if path is None:
-        return cfg
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """The JSON object of a config file (sections as in `Config`); one-line errors."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: config file not found; pass an existing JSON file to --config")
@@ -202,5 +213,34 @@ def load_config(path: str | Path | None, base: Config | None = None) -> Config:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}: malformed JSON ({exc.msg} at line {exc.lineno}); fix the file")
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object with sections "
+                         f"{[f.name for f in dataclasses.fields(Config)]}")
+    return data
+
+
+def load_config(path: str | Path | None, base: Config | None = None) -> Config:
+    """Read a JSON config file on top of ``base`` (default: paper defaults)."""
+    cfg = base if base is not None else Config()
+    if path is None:
+        return cfg
+    cfg.update(read_config_file(path), str(path))
+    return cfg
+
+
+def override_config(cfg: Config, path: str | Path | None, allowed: tuple[str, ...],
+                    command: str) -> Config:
+    """Apply a JSON config file to the config of a trained run, in place.
+
+    Only the sections in ``allowed`` may appear: the field architecture and the stage-1 schedule
+    are fixed once a run is trained, so e.g. ``shells-extract`` takes only ``shell``.
+    """
+    if path is None:
+        return cfg
+    data = read_config_file(path)
+    bad = sorted(set(data) - set(allowed))
+    if bad:
+        raise InputError(f"{path}: {command} --config takes only the section(s) "
+                         f"{list(allowed)}, got {bad}; those are fixed by the trained run")
     cfg.update(data, str(path))
     return cfg

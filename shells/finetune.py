@@ -79,8 +79,14 @@ def finetune_step(field: ShellField, opt: torch.optim.Optimizer, scene: ShellSce
 
 
 def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False,
-             progress: bool = True, stop_at: int | None = None) -> dict[str, Any]:
-    """Stage-2 fine-tuning of a run that has a stage-1 checkpoint and shells (CPU)."""
+             progress: bool = True, stop_at: int | None = None,
+             config: str | Path | None = None) -> dict[str, Any]:
+    """Stage-2 fine-tuning of a run that has a stage-1 checkpoint and shells (CPU).
+
+    ``config``: a JSON file with ``finetune`` / ``render`` sections overriding the run's; the
+    result is stored with the stage-2 checkpoint (and used by renders of stage 2).
+    """
+    from shells.config import override_config
     from shells.render.run import load_shells
 
     run = RunDir(run_dir)
@@ -95,6 +101,7 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
             raise InputError(f"{run.finetune_checkpoint}: stage 2 already ran; pass --resume to "
                              f"continue it, or delete the file to start over")
         field, cfg = load_field(run.root, stage="stage1")
+    override_config(cfg, config, ("finetune", "render"), "shells-finetune")
     fc, rc = cfg.finetune, cfg.render
     if iters is not None:
         fc.iters = iters

@@ -16,18 +16,21 @@ from shells.run import RunDir
 
 
 def extract_run(run_dir: str | Path, resolution: int | None = None,
-                fixed_width: float | None = None) -> dict[str, Any]:
+                fixed_width: float | None = None,
+                config: str | Path | None = None) -> dict[str, Any]:
     """Sample the stage-1 field on a grid, extract M+ and M-, write RUN/shells/; returns stats.
 
-    ``fixed_width`` w gives the fixed band {|f| <= w} instead of the adaptive one (ablation).
+    ``fixed_width`` w gives the fixed band {|f| <= w} instead of the adaptive one (ablation);
+    ``config``: a JSON file with a ``shell`` section overriding the run's shell settings.
     """
+    from shells.config import override_config
     from shells.levelset.extract import extract_shells, write_shells
     from shells.levelset.grid import sample_grid_banded
     from shells.training import load_field
 
     run = RunDir(run_dir)
     field, cfg = load_field(run.root, stage="stage1")
-    sc = cfg.shell
+    sc = override_config(cfg, config, ("shell",), "shells-extract").shell
     if resolution is not None:
         if resolution < 8:
             raise InputError(f"--resolution {resolution}: use at least 8 (e.g. 256)")

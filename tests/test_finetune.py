@@ -97,3 +97,51 @@ def test_finetune_cli_errors(stage1_run, tmp_path, capsys):
     assert finetune_main([str(noshell)]) == 2
     err = capsys.readouterr().err.strip()
     assert "shells-extract" in err and not (noshell / "finetune.pt").exists()
+
+
+def test_config_override_of_a_trained_run(stage1_run, tmp_path, capsys):
+    """--config on extract / finetune / render changes only the allowed sections, is recorded,
+    and a wrong section or value type is a one-line exit-2 error that writes nothing."""
+    from shells.cli import extract_main, render_main
+
+    run = _copy_run(stage1_run, tmp_path / "run")
+    shell_cfg = tmp_path / "shell.json"
+    shell_cfg.write_text(json.dumps({"shell": {"dilate_zeta": 0.2, "resolution": 24}}))
+    assert extract_main([str(run), "--config", str(shell_cfg)]) == 0
+    params = json.loads((run / "shells" / "stats.json").read_text())["params"]
+    assert params["dilate_zeta"] == 0.2 and params["resolution"] == 24
+    # the checkpoint's own config is untouched: a plain extract goes back to the run's zeta
+    _, cfg = load_field(run, stage="stage1")
+    assert cfg.shell.dilate_zeta == 0.1
+    before = {p.name: _digest(p) for p in (run / "shells").iterdir()}
+
+    bad_section = tmp_path / "field.json"
+    bad_section.write_text(json.dumps({"field": {"n_levels": 2}}))
+    assert extract_main([str(run), "--config", str(bad_section)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "field.json" in err[0] and "'shell'" in err[0]
+    bad_type = tmp_path / "type.json"
+    bad_type.write_text(json.dumps({"shell": {"dilate_zeta": "wide"}}))
+    assert extract_main([str(run), "--config", str(bad_type)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "shell.dilate_zeta" in err[0] and "float" in err[0]
+    assert {p.name: _digest(p) for p in (run / "shells").iterdir()} == before
+
+    ft_cfg = tmp_path / "ft.json"
+    ft_cfg.write_text(json.dumps({"finetune": {"iters": 2}, "render": {"delta_s": 0.05}}))
+    assert finetune_main([str(run), "--config", str(shell_cfg)]) == 2
+    assert not (run / "finetune.pt").exists()
+    assert finetune_main([str(run), "--config", str(ft_cfg)]) == 0
+    _, cfg2 = load_field(run, stage="stage2")
+    assert cfg2.finetune.iters == 2 and cfg2.render.delta_s == 0.05
+    capsys.readouterr()
+
+    r_cfg = tmp_path / "render.json"
+    r_cfg.write_text(json.dumps({"render": {"full_samples": 16}}))
+    out = tmp_path / "full"
+    assert render_main([str(run), "--mode", "full", "--config", str(r_cfg),
+                        "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["render_config"]["full_samples"] == 16 and m["samples_per_pixel"] <= 16
+    assert render_main([str(run), "--config", str(ft_cfg), "--out", str(tmp_path / "x")]) == 2
+    assert not (tmp_path / "x").exists()

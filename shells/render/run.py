@@ -146,10 +146,11 @@ def load_shells(run: RunDir, variant: str | None) -> ShellScene:
 def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                width: int | None = None, height: int | None = None,
                out: str | Path | None = None, progress: bool = True,
-               stage: str = "latest") -> dict[str, Any]:
+               stage: str = "latest", config: str | Path | None = None) -> dict[str, Any]:
     """Render every view of ``split`` and write images + metrics.json; returns the metrics.
 
-    ``stage`` picks the checkpoint: 'latest' (stage 2 when present), 'stage1' or 'stage2'.
+    ``stage`` picks the checkpoint: 'latest' (stage 2 when present), 'stage1' or 'stage2';
+    ``config``: a JSON file with a ``render`` section overriding the run's render settings.
     """
     run = RunDir(run_dir)
     meta = check_run(run, mode)
@@ -157,10 +158,11 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     from shells.datasets import load_dataset
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
+    from shells.config import override_config
     from shells.training import load_field
 
     field, cfg = load_field(run.root, device="cpu", stage=stage)
-    rc = cfg.render
+    rc = override_config(cfg, config, ("render",), "shells-render").render
     variant = mitsuba_variant(rc.variant)
     scene = load_shells(run, variant) if mode == "band" else None
     data = load_dataset(meta["data"], split, downscale=int(meta.get("downscale", 1)),
