@@ -42,8 +42,8 @@ the surface density is sigma = 1 / (2 s)):
 
 With the defaults (beta_d = 0.6, sigma_min = 0, beta_e = 0.3, v_max = 0.035) an opaque surface
 with s = 0.005 gets a band of about 3 s + 1.5 s = 0.023 (4.5 % of a radius-0.5 sphere), while
-a fuzzy region (s = 0.05) is dilated and eroded up to the zeta limits (0.1 outward, 0.05
-inward).
+a fuzzy region (s = 0.05) is dilated and eroded up to the zeta limits (paper: 0.1 outward, 0.05
+inward; the toy preset allows 0.25 / 0.1 for the thick core-fuzz coat, see shells/config.py).
 """
 
 from __future__ import annotations
