@@ -9,6 +9,8 @@ Reads the scene record that `shells-scene` writes into transforms_train.json and
   (marching cubes of f at 128^3) - "the kernel at the content's surface";
 - for `core-fuzz`: median s on the true core sphere and on the learned surface outside it
   (the coat), and their ratio;
+- `radial_profile`: median f and s over 2000 directions on spheres of radius 0.20 ... 0.64
+  around the scene centre (where the kernel is sharp or wide relative to the zero level set);
 - the run's test PSNR and training time from RUN/train_summary.json.
 """
 
@@ -64,6 +66,14 @@ def field_metrics(run_dir: str | Path, resolution: int = 128) -> dict:
             out["sdf_abs_on_true_surface"] = float(fa.mean())
             out["sdf_abs_fraction_of_radius"] = float(fa.mean() / radius)
             out["s_true_surface"] = float(field.kernel(pts).median())
+        centre = torch.tensor(scene.get("center", [0.0, 0.0, 0.0]), dtype=torch.float32)
+        dirs = fibonacci_sphere(2000).float()
+        out["radial_profile"] = []
+        for rad in np.arange(0.20, 0.65, 0.04):
+            pts = centre + dirs * float(rad)
+            out["radial_profile"].append({"r": round(float(rad), 2),
+                                          "f_median": float(field.sdf(pts).median()),
+                                          "s_median": float(field.kernel(pts).median())})
         if scene.get("name") == "core-fuzz" and radius and len(s_surf):
             coat = s_surf[r > float(radius) + 0.05]
             out["s_coat_learned_surface"] = float(np.median(coat)) if len(coat) else None
