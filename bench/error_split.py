@@ -30,7 +30,8 @@ def split_errors(data: Path, render: Path) -> dict[str, dict[str, float]]:
         img = iio.imread(render / f"r_{i:03d}.png").astype(np.float32)[..., :3] / 255.0
         err = ((img - rgb) ** 2).mean(-1)  # [H, W]
         inside = alpha[..., 0] > 0.5
-        edge = (inside & ~ndimage.binary_erosion(inside)) | (~inside & ndimage.binary_dilation(inside))
+        edge = ((inside & ~ndimage.binary_erosion(inside))
+                | (~inside & ndimage.binary_dilation(inside)))
         acc["edge"].append(err[edge])
         acc["object"].append(err[inside & ~edge])
         acc["background"].append(err[~inside & ~edge])

@@ -158,7 +158,8 @@ def finetune_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from the last stage-2 checkpoint")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="JSON file with 'finetune' and/or 'render' sections overriding the "
-                        "run's settings (see shells/config.py), e.g. {\"finetune\": {\"iters\": 1000}}")
+                        "run's settings (see shells/config.py), "
+                        "e.g. {\"finetune\": {\"iters\": 1000}}")
     return p
 
 

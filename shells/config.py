@@ -199,12 +199,12 @@ def toy_config() -> Config:
     # zeta 0.25 / 0.1 (paper 0.1 / 0.05, kept in the paper preset): the fall-off stops the
     # fronts at |f| = zeta, and the core-fuzz coat's density tail reaches f ~ 3 s ~ 0.2 outside
     # the learned surface and its core ends ~0.06 inside it; an opaque surface moves only 3 s /
-    # 1.5 s, far less than either zeta (measured in BENCHMARKS.md, "Shell defaults")
+    # 1.5 s, far less than either zeta (BENCHMARKS.md, "The toy preset's zeta and stage-2 lr")
     cfg.shell = ShellConfig(resolution=128, dilate_zeta=0.25, erode_zeta=0.1)
     # single-sample intervals up to 0.03, spacing 0.02: <= 3 samples per covered pixel on the
     # toy sphere at 0.5 dB from full-ray rendering (BENCHMARKS.md, "Band vs full")
     cfg.render = RenderConfig(w_s=0.03, delta_s=0.02)
-    # a short stage 2 at 3x / 10x the paper-preset learning rates (BENCHMARKS.md, stage 2)
+    # a short stage 2 at 3x / 10x the paper-preset learning rates (same BENCHMARKS.md section)
     cfg.finetune = FinetuneConfig(iters=500, batch_rays=1024, lr=3e-3, lr_mlp=1e-3,
                                   checkpoint_every=250, log_every=25)
     return cfg
