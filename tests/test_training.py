@@ -85,3 +85,20 @@ def test_global_kernel_ablation_keeps_one_kernel_size(tiny_blender, tmp_path):
     with torch.no_grad():
         sv = load_field(tmp_path / "v")[0].kernel(x)
     assert float(sv.max() - sv.min()) > 0.0
+
+
+def test_config_values_are_type_checked():
+    from shells.config import Config
+    from shells.errors import InputError
+
+    cfg = Config()
+    cfg.update({"shell": {"dilate_zeta": 1}, "train": {"background": [0, 0, 0]},
+                "render": {"variant": "llvm_ad_rgb"}})  # int for a float, list for a tuple
+    assert cfg.shell.dilate_zeta == 1 and cfg.train.background == (0, 0, 0)
+    for bad, where in (({"train": {"iters": 2.5}}, "train.iters"),
+                       ({"train": {"iters": True}}, "train.iters"),
+                       ({"field": {"global_kernel": 1}}, "field.global_kernel"),
+                       ({"shell": {"beta_d": "0.6"}}, "shell.beta_d"),
+                       ({"train": {"background": 1.0}}, "train.background")):
+        with pytest.raises(InputError, match=where):
+            Config().update(bad, "x.json")
