@@ -17,6 +17,7 @@ Convention (the one place it is written down):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import torch
@@ -227,9 +228,16 @@ class Cameras:
                               torch.arange(self.width, device=self.device), indexing="ij")
         return i.reshape(-1).float() + 0.5, j.reshape(-1).float() + 0.5
 
-    def pixel_rays(self, i: int) -> tuple[Tensor, Tensor]:
-        """Rays through the centres of all pixels of camera ``i``, row-major: [H*W, 3] each."""
+    def pixel_rays(self, i: int, spp: int = 1) -> tuple[Tensor, Tensor]:
+        """Rays of all pixels of camera ``i``, row-major: [H*W*spp, 3] each.
+
+        ``spp`` = 1: through the pixel centres; otherwise through the centres of a k x k grid
+        of sub-pixel cells (spp = k^2, `subpixel_offsets`), a pixel's rays contiguous.
+        """
         px, py = self.pixel_grid()
+        off = subpixel_offsets(spp, device=px.device)  # [spp, 2]
+        px = (px[:, None] - 0.5 + off[:, 0]).reshape(-1)
+        py = (py[:, None] - 0.5 + off[:, 1]).reshape(-1)
         cam = torch.full_like(px, i, dtype=torch.long)
         return self.rays(cam, px, py)
 
@@ -246,6 +254,30 @@ class Cameras:
         u = self.fx[cam] * xy[:, 0] + self.cx[cam]
         v = self.fy[cam] * xy[:, 1] + self.cy[cam]
         return torch.stack([u, v], dim=-1), z
+
+
+def subpixel_offsets(spp: int, generator: torch.Generator | None = None, n: int | None = None,
+                     device: torch.device | str = "cpu") -> Tensor:
+    """Positions inside a pixel (in [0, 1)^2, x then y) of its ``spp`` = k^2 rays: one per
+    cell of a k x k grid, at the cell centre, or uniformly jittered within the cell when a
+    ``generator`` is given. -> [spp, 2], or [n, spp, 2] (independent jitter per pixel) with ``n``.
+
+    Averaging the rays of a pixel is the box filter the toy scenes' references are rendered
+    with (`scenes/dataset.py`), so a field trained this way need not blur its edges to match
+    anti-aliased pixels. spp = 1 is the pixel centre.
+    """
+    k = math.isqrt(spp)
+    if spp < 1 or k * k != spp:
+        raise InputError(f"{spp} rays per pixel: must be a square number (1, 4, 9, 16, ...)")
+    j, i = torch.meshgrid(torch.arange(k, device=device), torch.arange(k, device=device),
+                          indexing="ij")
+    cell = torch.stack([i.reshape(-1), j.reshape(-1)], dim=-1).float()  # [spp, 2]
+    shape = (spp, 2) if n is None else (n, spp, 2)
+    if generator is None:
+        jitter = torch.full(shape, 0.5, device=device)
+    else:
+        jitter = torch.rand(shape, generator=generator, device=device)
+    return (cell + jitter) / k
 
 
 def pinhole_cameras(c2w: Tensor, fx: float, width: int, height: int, fy: float | None = None,

@@ -190,6 +190,9 @@ def render_parser() -> argparse.ArgumentParser:
                         "empty-space skipping and early termination (Instant-NGP-style baseline)")
     p.add_argument("--width", type=int, default=None, help="output width (default: data set's)")
     p.add_argument("--height", type=int, default=None, help="output height")
+    p.add_argument("--spp", type=int, default=None, metavar="N",
+                   help="rays per pixel, N = k*k on a sub-pixel grid, averaged (anti-aliasing; "
+                        "default: the run's render.spp, 1 = pixel centres)")
     p.add_argument("--out", default=None, help="output directory (default RUN/render-MODE)")
     p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest",
                    help="which checkpoint: stage 2 when present (latest, default), or explicit")
@@ -207,7 +210,8 @@ def _render(args: argparse.Namespace) -> int:
         if v is not None and v < 1:
             raise InputError(f"--{name} {v}: must be a positive number of pixels")
     m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
-                   height=args.height, out=args.out, stage=args.stage, config=args.config)
+                   height=args.height, out=args.out, stage=args.stage, config=args.config,
+                   spp=args.spp)
     fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
     print(f"{m['mode']}: PSNR {fmt(m.get('psnr'), '.2f')} dB, SSIM {fmt(m.get('ssim'), '.4f')}, "
           f"{m['samples_per_pixel']:.2f} samples/pixel, {m['ms_per_frame']:.1f} ms/frame "

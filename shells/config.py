@@ -49,6 +49,9 @@ class TrainConfig:
 
     iters: int = 20000  # optimisation steps
     batch_rays: int = 4096  # rays per step
+    pixel_samples: int = 1  # rays per training pixel, k x k jittered sub-pixel positions whose
+    # colours are averaged before the loss (box-filtered pixels; 1 = one ray at the centre);
+    # a step takes batch_rays / pixel_samples pixels
     n_samples: int = 64  # uniform samples per ray inside the scene box
     n_importance: int = 64  # extra samples per ray drawn from the coarse weights (0 = off)
     lr: float = 1e-2  # Adam learning rate for hash-grid tables
@@ -98,6 +101,8 @@ class ShellConfig:
 class RenderConfig:
     """Narrow-band sampling and rendering (§3.4, Procedure 3)."""
 
+    spp: int = 1  # rays per pixel at the centres of k x k sub-pixel cells, averaged (box
+    # filter); 1 = one ray through the pixel centre. samples_per_pixel counts all of them
     dp_max: int = 8  # at most this many M+ hits are peeled per ray
     w_s: float = 0.01  # intervals narrower than this get a single mid sample (world units)
     delta_s: float = 0.01  # sample spacing inside wider intervals (world units)
@@ -121,6 +126,7 @@ class FinetuneConfig:
 
     iters: int = 2000  # optimisation steps
     batch_rays: int = 4096  # rays per step
+    pixel_samples: int = 1  # rays per training pixel (k x k jittered, averaged), as in stage 1
     lr: float = 1e-3  # Adam learning rate for hash tables
     lr_mlp: float = 1e-4  # Adam learning rate for MLP weights
     seed: int = 0  # RNG seed

@@ -15,6 +15,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from shells.cameras import subpixel_offsets
 from shells.config import FinetuneConfig, RenderConfig
 from shells.datasets import Dataset, load_dataset
 from shells.errors import InputError, read_json, write_json
@@ -24,7 +25,8 @@ from shells.render.raycast import ShellScene
 from shells.render.sampler import band_samples
 from shells.run import RunDir
 from shells.training import (_append_log, _truncate_log, load_field, lr_factor, make_optimizer,
-                             read_checkpoint, save_checkpoint, set_lr, step_generator)
+                             read_checkpoint, sample_pixel_rays, save_checkpoint, set_lr,
+                             step_generator)
 
 
 def render_band(field: ShellField, scene: ShellScene,
@@ -61,21 +63,19 @@ def finetune_step(field: ShellField, opt: torch.optim.Optimizer, scene: ShellSce
                   data: Dataset, pixels: torch.Tensor, fc: FinetuneConfig, rc: RenderConfig,
                   step: int, background: torch.Tensor) -> dict[str, float]:
     gen = step_generator(fc.seed, step, torch.device("cpu"))
-    n_views, H, W = data.images.shape[:3]
-    idx = torch.randint(0, n_views * H * W, (fc.batch_rays,), generator=gen)
-    cam, rem = idx // (H * W), idx % (H * W)
-    o, d = data.cameras.rays(cam, (rem % W).float() + 0.5, (rem // W).float() + 0.5)
+    idx, o, d = sample_pixel_rays(data, fc.batch_rays, fc.pixel_samples, gen)
     out = render_band(field, scene, o, d, rc, background)
+    pred = out["color"].reshape(len(idx), fc.pixel_samples, 3).mean(1)  # box filter
     target = pixels[idx]
-    loss = (out["color"] - target).abs().mean()
+    loss = (pred - target).abs().mean()
     set_lr(opt, lr_factor(step, fc.iters, 0, 0.1))
     opt.zero_grad(set_to_none=True)
     if loss.requires_grad:  # a batch of rays that all miss the band has nothing to train
         loss.backward()
         opt.step()
-    mse = ((out["color"].detach().clamp(0, 1) - target) ** 2).mean().item()
+    mse = ((pred.detach().clamp(0, 1) - target) ** 2).mean().item()
     return {"loss": loss.item(), "psnr": -10.0 * torch.log10(torch.tensor(max(mse, 1e-10))).item(),
-            "spp": out["spp"].float().mean().item()}
+            "spp": out["spp"].float().mean().item() * fc.pixel_samples}  # samples per pixel
 
 
 def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False,
@@ -103,6 +103,7 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
         field, cfg = load_field(run.root, stage="stage1")
     override_config(cfg, config, ("finetune", "render"), "shells-finetune")
     fc, rc = cfg.finetune, cfg.render
+    subpixel_offsets(fc.pixel_samples)  # a non-square count fails here, before any write
     if iters is not None:
         fc.iters = iters
     scene = load_shells(run, "llvm_ad_rgb")

@@ -20,6 +20,7 @@ import torch
 from tqdm.auto import tqdm
 
 from shells.config import Config, TrainConfig
+from shells.cameras import subpixel_offsets
 from shells.datasets import Dataset, load_dataset
 from shells.errors import InputError, atomic_write, read_json, write_json
 from shells.fields.hashgrid import HashGrid
@@ -100,21 +101,39 @@ def reg_points(field: ShellField, ray_points: torch.Tensor, n: int,
     return torch.cat([flat[pick], uni])
 
 
+def sample_pixel_rays(data: Dataset, batch_rays: int, spp: int, gen: torch.Generator,
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A random batch of training pixels and their rays: ``batch_rays // spp`` pixels (flat
+    indices [P] into the split's images) with ``spp`` jittered sub-pixel rays each
+    (origins, unit directions [P * spp, 3] on the CPU, a pixel's rays contiguous)."""
+    n_views, H, W = data.images.shape[:3]
+    n = max(1, batch_rays // spp)
+    idx = torch.randint(0, n_views * H * W, (n,), generator=gen, device=gen.device)
+    cam, rem = idx // (H * W), idx % (H * W)
+    if spp == 1:  # the pixel centre (kept bit-identical to runs made before spp existed)
+        off = torch.full((n, 1, 2), 0.5, device=idx.device)
+    else:
+        off = subpixel_offsets(spp, gen, n, device=idx.device)  # [P, spp, 2]
+    px = ((rem % W).float()[:, None] + off[..., 0]).reshape(-1)
+    py = ((rem // W).float()[:, None] + off[..., 1]).reshape(-1)
+    cam = cam[:, None].expand(n, spp).reshape(-1)
+    o, d = data.cameras.rays(cam.cpu(), px.cpu(), py.cpu())
+    return idx, o, d
+
+
 def train_step(field: ShellField, opt: torch.optim.Optimizer, data: Dataset,
                pixels: torch.Tensor, tc: TrainConfig, step: int,
                background: torch.Tensor) -> dict[str, float]:
     """One optimisation step on a random batch of pixels; returns scalar logs."""
     device = pixels.device
     gen = step_generator(tc.seed, step, device)
-    n_views, H, W = data.images.shape[:3]
-    idx = torch.randint(0, n_views * H * W, (tc.batch_rays,), generator=gen, device=device)
-    cam, rem = idx // (H * W), idx % (H * W)
-    py, px = (rem // W).float() + 0.5, (rem % W).float() + 0.5
-    o, d = data.cameras.rays(cam.cpu(), px.cpu(), py.cpu())
+    spp = tc.pixel_samples
+    idx, o, d = sample_pixel_rays(data, tc.batch_rays, spp, gen)
     o, d = o.to(device), d.to(device)
     target = pixels[idx]
     out = render_rays(field, o, d, tc.n_samples, tc.n_importance, background, gen)
-    color = (out["color"] - target).abs().mean()
+    pred = out["color"].reshape(len(idx), spp, 3).mean(1)  # box filter
+    color = (pred - target).abs().mean()
     reg = regularisers(field, reg_points(field, out["points"], REG_POINTS, gen),
                        tc.fd_eps, tc.smooth_eps, gen)
     loss = (color + tc.eikonal_weight * reg["eikonal"] + tc.kernel_smooth_weight * reg["smooth"]
@@ -124,7 +143,7 @@ def train_step(field: ShellField, opt: torch.optim.Optimizer, data: Dataset,
     loss.backward()
     opt.step()
     with torch.no_grad():
-        mse = ((out["color"].clamp(0, 1) - target) ** 2).mean().item()
+        mse = ((pred.clamp(0, 1) - target) ** 2).mean().item()
     return {"loss": loss.item(), "color_l1": color.item(),
             "eikonal": reg["eikonal"].item(), "normal": reg["normal"].item(),
             "smooth": reg["smooth"].item(), "psnr": -10.0 * math.log10(max(mse, 1e-10))}
@@ -179,9 +198,10 @@ def evaluate(field: ShellField, data: Dataset, tc: TrainConfig, max_views: int =
     n = len(data.cameras) if max_views <= 0 else min(max_views, len(data.cameras))
     scores = []
     for i in range(n):
-        o, d = data.cameras.pixel_rays(i)
+        o, d = data.cameras.pixel_rays(i, tc.pixel_samples)
         img = render_image(field, o.to(device), d.to(device), tc.n_samples, tc.n_importance, bg)
-        pred = img["color"].reshape(data.images.shape[1:]).cpu()
+        pred = img["color"].reshape(-1, tc.pixel_samples, 3).mean(1)  # box filter
+        pred = pred.reshape(data.images.shape[1:]).cpu()
         scores.append(psnr(pred.numpy(), data.images[i].numpy()))
     return {"psnr": float(sum(scores) / len(scores)), "psnr_per_view": scores, "n_views": n}
 
@@ -206,6 +226,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, device: torch.
     elif run.checkpoint.exists():
         raise InputError(f"{run.checkpoint}: the run already has a checkpoint; pass --resume to "
                          f"continue it or choose another --out")
+    subpixel_offsets(cfg.train.pixel_samples)  # a non-square count fails here, before any write
     data = load_dataset(data_dir, "train", downscale=downscale, background=cfg.train.background)
     tc = cfg.train
     if iters is not None:

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from shells.cameras import (Cameras, distort, look_at, opencv_to_mitsuba, opengl_to_opencv,
-                            pinhole_cameras, undistort)
+                            pinhole_cameras, subpixel_offsets, undistort)
 from shells.errors import InputError
 
 # Instant-NGP fox (../shared/data/fox/transforms.json): one shared camera, 1080x1920 portrait.
@@ -50,6 +50,33 @@ def test_identity_camera_centre_and_corner_rays():
     assert torch.allclose(d_all[1 * 5 + 2], torch.tensor([0.0, 0.0, 1.0]))
     assert torch.allclose(d_all[2 * 5 + 4], torch.tensor([2 / 3, 1 / 3, 2 / 3]), atol=1e-6)
     assert torch.allclose(d_all.norm(dim=-1), torch.ones(15))
+
+
+def test_subpixel_offsets_stratify_the_pixel():
+    # spp = 4: the centres of the 2 x 2 cells, x fastest
+    want = torch.tensor([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]])
+    assert torch.equal(subpixel_offsets(4), want)
+    assert torch.equal(subpixel_offsets(1), torch.tensor([[0.5, 0.5]]))
+    # jittered: one uniform position inside each cell, independently per pixel
+    gen = torch.Generator().manual_seed(0)
+    j = subpixel_offsets(9, gen, n=500)  # [500, 9, 2]
+    cell = torch.floor(j * 3)
+    assert torch.equal(cell, torch.floor(subpixel_offsets(9) * 3).expand(500, 9, 2))
+    assert (j.std(0) > 0.05).all()  # really jittered, not the centres
+    for bad in (0, 2, 8):
+        with pytest.raises(InputError, match="square"):
+            subpixel_offsets(bad)
+
+
+def test_pixel_rays_with_spp_hit_the_sub_pixel_cell_centres():
+    # 5x3 image, f = 2: a pixel's 4 rays pass through (i + 0.25 | 0.75, j + 0.25 | 0.75)
+    cams = pinhole_cameras(torch.eye(4), fx=2.0, width=5, height=3)
+    o, d = cams.pixel_rays(0, spp=4)
+    assert d.shape == (15 * 4, 3)
+    uv, _ = cams.project(o + d, torch.zeros(60, dtype=torch.long))
+    pix = 1 * 5 + 2  # pixel (2, 1)
+    want = torch.tensor([[2.25, 1.25], [2.75, 1.25], [2.25, 1.75], [2.75, 1.75]])
+    assert torch.allclose(uv[4 * pix:4 * pix + 4], want, atol=1e-5)
 
 
 def test_posed_camera_rays_rotate_and_translate():

@@ -128,12 +128,15 @@ def test_config_override_of_a_trained_run(stage1_run, tmp_path, capsys):
     assert {p.name: _digest(p) for p in (run / "shells").iterdir()} == before
 
     ft_cfg = tmp_path / "ft.json"
-    ft_cfg.write_text(json.dumps({"finetune": {"iters": 2}, "render": {"delta_s": 0.05}}))
+    ft_cfg.write_text(json.dumps({"finetune": {"iters": 2, "pixel_samples": 4},
+                                  "render": {"delta_s": 0.05}}))
     assert finetune_main([str(run), "--config", str(shell_cfg)]) == 2
     assert not (run / "finetune.pt").exists()
     assert finetune_main([str(run), "--config", str(ft_cfg)]) == 0
     _, cfg2 = load_field(run, stage="stage2")
     assert cfg2.finetune.iters == 2 and cfg2.render.delta_s == 0.05
+    log = [json.loads(ln) for ln in (run / "finetune_log.jsonl").open()]
+    assert len(log) == 2 and log[-1]["spp"] > 0  # samples per pixel over its 4 rays
     capsys.readouterr()
 
     r_cfg = tmp_path / "render.json"
@@ -143,5 +146,14 @@ def test_config_override_of_a_trained_run(stage1_run, tmp_path, capsys):
                         "--out", str(out)]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["render_config"]["full_samples"] == 16 and m["samples_per_pixel"] <= 16
+    # spp = 4: four rays per pixel, their samples counted together
+    r4_cfg = tmp_path / "render4.json"
+    r4_cfg.write_text(json.dumps({"render": {"full_samples": 16, "spp": 4}}))
+    out4 = tmp_path / "full4"
+    assert render_main([str(run), "--mode", "full", "--config", str(r4_cfg),
+                        "--out", str(out4)]) == 0
+    m4 = json.loads((out4 / "metrics.json").read_text())
+    assert m4["samples_per_pixel"] == pytest.approx(4 * m["samples_per_pixel"], rel=0.05)
+    assert abs(m4["psnr"] - m["psnr"]) < 1.0  # the same field, box-filtered
     assert render_main([str(run), "--config", str(ft_cfg), "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()

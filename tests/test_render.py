@@ -182,6 +182,29 @@ def test_band_and_full_agree_on_analytic_sphere(shells):
     np.testing.assert_allclose(band[32, 32].numpy(), [0.5, 0.5, 0.0], atol=0.03)
 
 
+def test_spp_averages_the_sub_pixel_rays(shells):
+    # cfg.spp = 4: a pixel's colour is the mean of its 4 rays and its sample count their sum,
+    # exactly as four separate one-ray renders of the same rays
+    from shells.cameras import pinhole_cameras
+
+    # OpenCV camera at z = -2 looking at the sphere (radius 0.5: ~5 px of the 16 px image)
+    c2w = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -2.0], [0, 0, 0, 1]])
+    cams = pinhole_cameras(c2w, fx=20.0, width=16, height=16)
+    o, d = cams.pixel_rays(0, spp=4)  # [16 * 16 * 4, 3]
+    cfg = RenderConfig(spp=4)
+    img, spp = render_image(SphereField(), o, d, 16, 16, cfg, "band", scene=shells)
+    one = RenderConfig()
+    parts = [render_image(SphereField(), o[k::4], d[k::4], 16, 16, one, "band", scene=shells)
+             for k in range(4)]
+    want = torch.stack([p[0] for p in parts]).mean(0)
+    assert torch.allclose(img, want, atol=1e-6)
+    assert torch.equal(spp, sum(p[1] for p in parts))
+    edge = (want < 0.99).any(-1) & (want > 0.01).any(-1)
+    assert edge.any()  # some pixels are partly covered: the average matters there
+    with pytest.raises(InputError):
+        render_image(SphereField(), o[:256], d[:256], 16, 16, cfg, "band", scene=shells)
+
+
 def test_band_render_respects_background(shells):
     cfg = RenderConfig(background=(0.0, 0.0, 0.0))
     o = torch.tensor([[0.0, 0.0, -2.5], [0.0, 0.9, -2.5]])

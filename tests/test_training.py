@@ -102,3 +102,34 @@ def test_config_values_are_type_checked():
                        ({"train": {"background": 1.0}}, "train.background")):
         with pytest.raises(InputError, match=where):
             Config().update(bad, "x.json")
+
+
+def test_supersampled_training_pixels(tiny_blender, tmp_path, capsys):
+    # train.pixel_samples = 4: batch_rays // 4 pixels per step, each with one jittered ray in
+    # each quarter of the pixel (projected back onto the image, the rays land there)
+    from shells.datasets import load_dataset
+    from shells.training import sample_pixel_rays
+
+    data = load_dataset(tiny_blender, "train")
+    H, W = data.images.shape[1:3]
+    gen = torch.Generator().manual_seed(1)
+    idx, o, d = sample_pixel_rays(data, 64, 4, gen)
+    assert idx.shape == (16,) and o.shape == d.shape == (64, 3)
+    cam = (idx // (H * W)).repeat_interleave(4)
+    uv, _ = data.cameras.project(o + d, cam)
+    pix = torch.stack([(idx % W), (idx // W) % H], -1).repeat_interleave(4, 0).float()
+    sub = (uv - pix).reshape(16, 4, 2)  # position inside the pixel
+    assert (sub > -1e-4).all() and (sub < 1 + 1e-4).all()
+    quarter = torch.floor(sub * 2 + 1e-6).clamp(0, 1)
+    assert torch.equal(quarter, torch.tensor([[0.0, 0], [1, 0], [0, 1], [1, 1]]).expand(16, 4, 2))
+    # a short run trains and evaluates with box-filtered pixels; a non-square count is an error
+    cfg = _tiny_config()
+    cfg.train.pixel_samples = 4
+    out = train(tiny_blender, tmp_path / "r", cfg, torch.device("cpu"), progress=False)
+    assert out["test"]["psnr"] > 0
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"train": {"pixel_samples": 3}}')
+    assert train_main(["--data", str(tiny_blender), "--out", str(tmp_path / "r2"),
+                       "--config", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "square" in err[0] and not (tmp_path / "r2").exists()

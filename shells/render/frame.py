@@ -124,21 +124,25 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
 
 
 def render_image(field: Any,
-                 origins: torch.Tensor,  # [H * W, 3] row-major pixel rays
-                 dirs: torch.Tensor,  # [H * W, 3]
+                 origins: torch.Tensor,  # [H * W * cfg.spp, 3] row-major pixel rays
+                 dirs: torch.Tensor,  # [H * W * cfg.spp, 3]
                  height: int, width: int,
                  cfg: RenderConfig,
                  mode: str = "band",
                  scene: ShellScene | None = None,
                  aabb: Any = None,
                  ) -> tuple[torch.Tensor, torch.Tensor]:  # rgb [H, W, 3] float32, spp [H, W] int
-    """A frame in ray chunks of at most cfg.chunk_samples samples (upper bound per ray)."""
-    R = height * width
+    """A frame in ray chunks of at most cfg.chunk_samples samples (upper bound per ray).
+
+    A pixel's cfg.spp rays (contiguous, `Cameras.pixel_rays(i, spp)`) are averaged (box
+    filter); its sample count is the sum over them."""
+    K = cfg.spp
+    R = height * width * K
     if origins.shape[0] != R or dirs.shape[0] != R:
-        raise InputError(f"{origins.shape[0]} rays for a {width}x{height} image")
+        raise InputError(f"{origins.shape[0]} rays for a {width}x{height} image at {K} spp")
     per_ray = {"full": cfg.full_samples,  # occupancy: samples held per live ray and round
                "occupancy": cfg.occ_chunk}.get(mode, ((cfg.dp_max + 1) // 2) * cfg.n_max)
-    chunk = max(1, cfg.chunk_samples // max(per_ray, 1))
+    chunk = max(1, cfg.chunk_samples // max(per_ray * K, 1)) * K  # whole pixels per chunk
     rgbs, spps = [], []
     for a in range(0, R, chunk):
         colour, count = render_rays(field, origins[a:a + chunk], dirs[a:a + chunk], cfg, mode,
@@ -146,6 +150,6 @@ def render_image(field: Any,
         n = dr.width(count)
         rgbs.append(mi.TensorXf(dr.ravel(colour), (n, 3)).torch())
         spps.append(mi.TensorXf(mi.Float(count), (n,)).torch())
-    rgb = torch.cat(rgbs).reshape(height, width, 3)
-    spp = torch.cat(spps).reshape(height, width).to(torch.int32)
+    rgb = torch.cat(rgbs).reshape(height, width, K, 3).mean(2)
+    spp = torch.cat(spps).reshape(height, width, K).sum(2).to(torch.int32)
     return rgb, spp

@@ -82,7 +82,7 @@ def render_views(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
     n, H, W = len(cameras), cameras.height, cameras.width
     times, psnrs, ssims, spps = [], [], [], []
     for i in tqdm(range(n), desc=f"render {mode}", disable=not progress):
-        o, d = cameras.pixel_rays(i)
+        o, d = cameras.pixel_rays(i, cfg.spp)
         dr.sync_thread()
         t0 = time.perf_counter()
         img, spp = render_image(field, o, d, H, W, cfg, mode, scene, aabb)
@@ -94,7 +94,7 @@ def render_views(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
             psnrs.append(psnr(img, images[i]))
             ssims.append(ssim(img, images[i]))
     if n == 1:  # one view: time a second, warm render of it
-        o, d = cameras.pixel_rays(0)
+        o, d = cameras.pixel_rays(0, cfg.spp)
         dr.sync_thread()
         t0 = time.perf_counter()
         render_image(field, o, d, H, W, cfg, mode, scene, aabb)
@@ -146,11 +146,13 @@ def load_shells(run: RunDir, variant: str | None) -> ShellScene:
 def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                width: int | None = None, height: int | None = None,
                out: str | Path | None = None, progress: bool = True,
-               stage: str = "latest", config: str | Path | None = None) -> dict[str, Any]:
+               stage: str = "latest", config: str | Path | None = None,
+               spp: int | None = None) -> dict[str, Any]:
     """Render every view of ``split`` and write images + metrics.json; returns the metrics.
 
     ``stage`` picks the checkpoint: 'latest' (stage 2 when present), 'stage1' or 'stage2';
-    ``config``: a JSON file with a ``render`` section overriding the run's render settings.
+    ``config``: a JSON file with a ``render`` section overriding the run's render settings;
+    ``spp``: rays per pixel (overrides both).
     """
     run = RunDir(run_dir)
     meta = check_run(run, mode)
@@ -158,11 +160,15 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     from shells.datasets import load_dataset
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
+    from shells.cameras import subpixel_offsets
     from shells.config import override_config
     from shells.training import load_field
 
     field, cfg = load_field(run.root, device="cpu", stage=stage)
     rc = override_config(cfg, config, ("render",), "shells-render").render
+    if spp is not None:
+        rc.spp = spp
+    subpixel_offsets(rc.spp)  # a non-square count fails here, before anything is written
     variant = mitsuba_variant(rc.variant)
     scene = load_shells(run, variant) if mode == "band" else None
     data = load_dataset(meta["data"], split, downscale=int(meta.get("downscale", 1)),
