@@ -29,7 +29,6 @@ import torch
 
 from scenes import make_scene
 from shells.config import toy_config
-from shells.errors import atomic_write
 from shells.finetune import finetune
 from shells.pipeline import extract_run
 from shells.render.run import render_run
@@ -46,17 +45,19 @@ def trained(data: Path, run: Path, global_kernel: bool, iters: int | None) -> Pa
     return run
 
 
-def current_settings(run: Path) -> None:
-    """Shell, render and stage-2 settings of the stage-1 checkpoint set to the current toy
-    preset (they do not influence stage 1), so the table always reflects today's defaults."""
-    path = RunDir(run).checkpoint
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+def later_stage_configs(out: Path) -> dict[str, Path]:
+    """The toy preset's shell / finetune+render / render settings as `--config` files, passed
+    to every extraction, fine-tuning and render, so the table always reflects today's defaults
+    whatever preset a reused stage-1 checkpoint was trained with (they do not influence it)."""
     toy = toy_config().to_dict()
-    if all(ckpt["config"][k] == toy[k] for k in ("shell", "render", "finetune")):
-        return
-    for k in ("shell", "render", "finetune"):
-        ckpt["config"][k] = toy[k]
-    atomic_write(path, lambda p: torch.save(ckpt, p))
+    files = {"extract": {"shell": toy["shell"]},
+             "finetune": {"finetune": toy["finetune"], "render": toy["render"]},
+             "render": {"render": toy["render"]}}
+    paths = {}
+    for name, data in files.items():
+        paths[name] = out / f"config-{name}.json"
+        paths[name].write_text(json.dumps(data, indent=1) + "\n")
+    return paths
 
 
 def variant(base: Path, path: Path) -> Path:
@@ -68,23 +69,24 @@ def variant(base: Path, path: Path) -> Path:
     return path
 
 
-def shells(run: Path, fixed: float | None) -> dict:
+def shells(run: Path, fixed: float | None, config: Path) -> dict:
     stats = run / "shells" / "stats.json"
     if not stats.is_file():
-        extract_run(run, fixed_width=fixed)
+        extract_run(run, fixed_width=fixed, config=config)
     return json.loads(stats.read_text())
 
 
-def rendered(run: Path, mode: str, stage: str) -> dict:
+def rendered(run: Path, mode: str, stage: str, config: Path) -> dict:
     out = run / f"render-{mode}-{stage}"
     if not (out / "metrics.json").is_file():
-        render_run(run, mode=mode, stage=stage, out=out)
+        render_run(run, mode=mode, stage=stage, out=out, config=config)
     return json.loads((out / "metrics.json").read_text())
 
 
-def finetuned(run: Path, iters: int | None) -> Path:
+def finetuned(run: Path, iters: int | None, config: Path) -> Path:
     if not (run / "finetune_summary.json").is_file():
-        finetune(run, iters=iters, resume=RunDir(run).finetune_checkpoint.is_file())
+        finetune(run, iters=iters, resume=RunDir(run).finetune_checkpoint.is_file(),
+                 config=config)
     return run
 
 
@@ -95,8 +97,7 @@ def ablation(scene: str, out: Path, iters: int | None, ft_iters: int | None,
         make_scene(scene, data, res=res, views=views)
     varying = trained(data, out / "varying", False, iters)
     glob = trained(data, out / "global", True, iters)
-    current_settings(varying)
-    current_settings(glob)
+    cfgs = later_stage_configs(out)
     runs = {  # name -> (run dir, kernel, band)
         "global": (glob, "global", "adaptive", None),
         "varying": (varying, "varying", "adaptive", None),
@@ -105,17 +106,17 @@ def ablation(scene: str, out: Path, iters: int | None, ft_iters: int | None,
     }
     rows = []
     for name in ("varying", "global"):
-        m = rendered(runs[name][0], "full", "stage1")
+        m = rendered(runs[name][0], "full", "stage1", cfgs["render"])
         rows.append({"kernel": runs[name][1], "band": "full ray (volumetric)", "finetune": "no",
                      "band_width_mean": None, **_scores(m)})
     for name, (run, kernel, band, fixed) in runs.items():
-        st = shells(run, fixed)
+        st = shells(run, fixed, cfgs["extract"])
         width = st.get("band_width", {}).get("mean")
         rows.append({"kernel": kernel, "band": band, "finetune": "no", "band_width_mean": width,
-                     **_scores(rendered(run, "band", "stage1"))})
-        finetuned(run, ft_iters)
+                     **_scores(rendered(run, "band", "stage1", cfgs["render"]))})
+        finetuned(run, ft_iters, cfgs["finetune"])
         rows.append({"kernel": kernel, "band": band, "finetune": "yes", "band_width_mean": width,
-                     **_scores(rendered(run, "band", "stage2"))})
+                     **_scores(rendered(run, "band", "stage2", cfgs["render"]))})
     return rows
 
 

@@ -19,8 +19,8 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from shells.config import Config, TrainConfig
 from shells.cameras import subpixel_offsets
+from shells.config import Config, TrainConfig
 from shells.datasets import Dataset, load_dataset
 from shells.errors import InputError, atomic_write, read_json, write_json
 from shells.fields.hashgrid import HashGrid

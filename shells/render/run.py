@@ -157,11 +157,11 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     run = RunDir(run_dir)
     meta = check_run(run, mode)
 
+    from shells.cameras import subpixel_offsets
+    from shells.config import override_config
     from shells.datasets import load_dataset
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
-    from shells.cameras import subpixel_offsets
-    from shells.config import override_config
     from shells.training import load_field
 
     field, cfg = load_field(run.root, device="cpu", stage=stage)
