@@ -10,11 +10,12 @@ sample-count ratio full / band and the median warm ms/frame of each, as one JSON
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 from shells.render.run import render_run
+
+from report import emit_json
 
 
 def main(argv=None) -> int:
@@ -43,10 +44,7 @@ def main(argv=None) -> int:
         res["psnr_gap_full_minus_band"] = res["psnr_full"] - res["psnr_band"]
     res["sample_ratio_full_over_band"] = res["spp_full"] / max(res["spp_band"], 1e-12)
     res["speedup_full_over_band"] = res["ms_full"] / res["ms_band"]
-    text = json.dumps(res, indent=1)
-    print(text)
-    if args.json:
-        Path(args.json).write_text(text + "\n")
+    emit_json(res, args.json)
     return 0
 
 

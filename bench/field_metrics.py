@@ -30,6 +30,8 @@ from shells.levelset.mesh import marching_cubes
 from shells.run import RunDir
 from shells.training import load_field
 
+from report import emit_json
+
 
 def field_metrics(run_dir: str | Path, resolution: int = 128) -> dict:
     run = RunDir(run_dir)
@@ -89,10 +91,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", default=None, help="also write the metrics to this file")
     args = p.parse_args(argv)
     m = field_metrics(args.run)
-    text = json.dumps(m, indent=1)
-    print(text)
-    if args.json:
-        Path(args.json).write_text(text + "\n")
+    emit_json(m, args.json)
     return 0
 
 

@@ -27,6 +27,8 @@ import trimesh
 
 from shells.fields.network import fibonacci_sphere
 
+from report import emit_json
+
 
 def first_hit_radius(mesh: trimesh.Trimesh, dirs: np.ndarray) -> np.ndarray:  # [N] (nan = miss)
     """Distance from the origin to the first crossing of ``mesh`` along each direction."""
@@ -74,10 +76,7 @@ def main(argv=None) -> int:
     p.add_argument("run", help="run directory with RUN/shells/{outer,inner}.ply")
     p.add_argument("--json", default=None, help="also write the numbers to this file")
     args = p.parse_args(argv)
-    text = json.dumps(shell_radii(args.run), indent=1)
-    print(text)
-    if args.json:
-        Path(args.json).write_text(text + "\n")
+    emit_json(shell_radii(args.run), args.json)
     return 0
 
 
