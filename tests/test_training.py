@@ -127,6 +127,7 @@ def test_supersampled_training_pixels(tiny_blender, tmp_path, capsys):
     cfg.train.pixel_samples = 4
     out = train(tiny_blender, tmp_path / "r", cfg, torch.device("cpu"), progress=False)
     assert out["test"]["psnr"] > 0
+    assert json.loads((tmp_path / "r" / "config.json").read_text())["train"]["pixel_samples"] == 4
     bad = tmp_path / "bad.json"
     bad.write_text('{"train": {"pixel_samples": 3}}')
     assert train_main(["--data", str(tiny_blender), "--out", str(tmp_path / "r2"),
