@@ -110,10 +110,9 @@ def sample_pixel_rays(data: Dataset, batch_rays: int, spp: int, gen: torch.Gener
     n = max(1, batch_rays // spp)
     idx = torch.randint(0, n_views * H * W, (n,), generator=gen, device=gen.device)
     cam, rem = idx // (H * W), idx % (H * W)
-    if spp == 1:  # the pixel centre (kept bit-identical to runs made before spp existed)
-        off = torch.full((n, 1, 2), 0.5, device=idx.device)
-    else:
-        off = subpixel_offsets(spp, gen, n, device=idx.device)  # [P, spp, 2]
+    # one ray stays at the pixel centre, drawing no random numbers (runs made before spp
+    # existed are reproduced bit for bit)
+    off = subpixel_offsets(spp, gen if spp > 1 else None, n, device=idx.device)  # [P, spp, 2]
     px = ((rem % W).float()[:, None] + off[..., 0]).reshape(-1)
     py = ((rem // W).float()[:, None] + off[..., 1]).reshape(-1)
     cam = cam[:, None].expand(n, spp).reshape(-1)
