@@ -30,18 +30,17 @@ import torch
 from scenes import make_scene
 from shells.config import toy_config
 from shells.finetune import finetune
-from shells.pipeline import extract_run
-from shells.render.run import render_run
+from shells.pipeline import extract_run, render_run
 from shells.run import RunDir
 from shells.training import train
 
 
 def trained(data: Path, run: Path, global_kernel: bool, iters: int | None) -> Path:
-    if not RunDir(run).checkpoint.is_file() or not (run / "train_summary.json").is_file():
+    if not RunDir(run).checkpoint().is_file() or not RunDir(run).summary().is_file():
         cfg = toy_config()
         cfg.field.global_kernel = global_kernel
         train(data, run, cfg, torch.device("cpu"), iters=iters,
-              resume=RunDir(run).checkpoint.is_file())
+              resume=RunDir(run).checkpoint().is_file())
     return run
 
 
@@ -84,9 +83,9 @@ def rendered(run: Path, mode: str, stage: str, config: Path) -> dict:
 
 
 def finetuned(run: Path, iters: int | None, config: Path) -> Path:
-    if not (run / "finetune_summary.json").is_file():
-        finetune(run, iters=iters, resume=RunDir(run).finetune_checkpoint.is_file(),
-                 config=config)
+    if not RunDir(run).summary("stage2").is_file():
+        finetune(run, iters=iters, resume=RunDir(run).checkpoint("stage2").is_file(),
+                 config=config, device="cpu")
     return run
 
 

@@ -13,7 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from shells.render.run import render_run
+from shells.pipeline import render_run
 
 from report import emit_json
 

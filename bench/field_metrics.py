@@ -27,8 +27,7 @@ import torch
 from shells.fields.network import fibonacci_sphere
 from shells.levelset.grid import sample_grid
 from shells.levelset.mesh import marching_cubes
-from shells.run import RunDir
-from shells.training import load_field
+from shells.run import RunDir, load_field, read_run
 
 from report import emit_json
 
@@ -36,14 +35,14 @@ from report import emit_json
 def field_metrics(run_dir: str | Path, resolution: int = 128) -> dict:
     run = RunDir(run_dir)
     field, cfg = load_field(run.root, stage="stage1")
-    meta = json.loads(run.run_json.read_text())
+    meta = read_run(run)
     scene = json.loads((Path(meta["data"]) / "transforms_train.json").read_text()).get("scene", {})
     out: dict = {"run": str(run.root), "scene": scene.get("name")}
-    summary = run.root / "train_summary.json"
+    summary = run.summary("stage1")
     if summary.is_file():
         s = json.loads(summary.read_text())
         out["test_psnr"] = s.get("test", {}).get("psnr")
-        out["train_seconds"] = s.get("train_seconds")
+        out["train_seconds"] = s.get("seconds", s.get("train_seconds"))  # older runs: train_seconds
         out["steps"] = s.get("step")
 
     def geo(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -15,7 +15,7 @@ with the same Dr.Jit field in four ways:
     floor      primary rays against M+ alone, no field evaluation: the time floor of `band`
 
 and reported as one Markdown table: samples/pixel (mean over all pixels), median warm ms/frame
-(`shells.render.run.render_views`: the first frame compiles kernels and is not counted; with one
+(`shells.render.views.render_views`: the first frame compiles kernels and is not counted; with one
 view a second render of it is timed), and PSNR/SSIM (`shells.metrics`) when rendering at the
 data set's own resolution (only speed otherwise). The table is printed, written with the raw
 numbers to OUT/render_speed.{md,json} (OUT default RUN/bench-speed-WxH), and with ``--append``
@@ -42,8 +42,9 @@ from typing import Any
 import drjit as dr
 
 from shells.errors import InputError
-from shells.render.run import check_run, load_shells, render_views, resized_cameras
-from shells.run import RunDir
+from shells.pipeline import check_run
+from shells.render.views import render_views, resized_cameras
+from shells.run import RunDir, load_field, load_shells
 
 LABELS = {
     "band": "band (adaptive shells)",
@@ -191,17 +192,16 @@ def run_bench(run_dir: Path, split: str = "test", width: int | None = None,
     from shells.levelset.mesh import load_ply
     from shells.render.occupancy import grid_summary, march_step, occupancy_grid
     from shells.render.raycast import ShellScene
-    from shells.training import load_field
 
     run = RunDir(run_dir)
     meta = check_run(run, "band")  # needs run.json, a checkpoint and the outer shell
     field, cfg = load_field(run.root, device="cpu", stage=stage)
-    rc = dataclasses.replace(cfg.render, **(overrides or {}))
+    cfg.update({"render": overrides or {}}, "bench/render_speed.py options")
+    rc, bg = cfg.render, tuple(cfg.data.background)
     variant = mitsuba_variant(rc.variant)
     scene = load_shells(run, variant)
     outer_only = ShellScene(load_ply(run.outer), None, variant)
-    data = load_dataset(meta["data"], split, downscale=int(meta.get("downscale", 1)),
-                        background=tuple(rc.background))
+    data = load_dataset(meta["data"], split, downscale=int(meta["downscale"]), background=bg)
     n = len(data.cameras) if not views else min(int(views), len(data.cameras))
     cams = resized_cameras(data.cameras[:n], width, height)
     same_size = (cams.width, cams.height) == (data.cameras.width, data.cameras.height)
@@ -219,7 +219,7 @@ def run_bench(run_dir: Path, split: str = "test", width: int | None = None,
     for mode in ("band", "full", "occupancy"):
         (out / mode).mkdir(parents=True, exist_ok=True)
         rows[mode] = render_views(dj, cams, images, rc, mode, scene if mode == "band" else None,
-                                  data.aabb, out / mode, progress)
+                                  data.aabb, out / mode, progress, bg)
     rows["floor"] = time_floor(outer_only, cams)
     return {
         "rows": rows, "out": out, "run": str(run.root), "split": split, "stage": stage,

@@ -95,8 +95,6 @@ def _train(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, toy_config() if preset == "toy" else Config())
     if args.data is None and not args.resume:
         raise InputError("--data DIR is required (the data set to train on)")
-    if args.iters is not None and args.iters < 1:
-        raise InputError(f"--iters {args.iters}: must be at least 1")
     if args.downscale < 1:
         raise InputError(f"--downscale {args.downscale}: must be at least 1")
     summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
@@ -140,7 +138,7 @@ def _extract(args: argparse.Namespace) -> int:
     if bw.get("count"):
         print(f"band width: mean {bw['mean']:.4f}, p5 {bw['p5']:.4f}, p95 {bw['p95']:.4f} "
               f"(world units); volume between shells {stats['volume_between']:.4f}")
-    print(f"grid {stats['resolution'][0]}^3 in {stats['timings']['total']:.1f} s; wrote "
+    print(f"grid {stats['resolution'][0]}^3 in {stats['timings_s']['total']:.1f} s; wrote "
           f"{args.run}/shells/outer.ply, inner.ply, stats.json, slice.png")
     return 0
 
@@ -156,6 +154,9 @@ def finetune_parser() -> argparse.ArgumentParser:
     p.add_argument("run", help="run directory with a checkpoint and shells")
     p.add_argument("--iters", type=int, default=None, help="fine-tuning steps")
     p.add_argument("--resume", action="store_true", help="continue from the last stage-2 checkpoint")
+    p.add_argument("--device", choices=["cpu", "cuda"], default=None,
+                   help="torch device (default: cuda if available); the Mitsuba variant follows "
+                        "it unless the run's render.variant names one")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="JSON file with 'finetune' and/or 'render' sections overriding the "
                         "run's settings (see shells/config.py), "
@@ -166,9 +167,8 @@ def finetune_parser() -> argparse.ArgumentParser:
 def _finetune(args: argparse.Namespace) -> int:
     from shells.finetune import finetune
 
-    if args.iters is not None and args.iters < 1:
-        raise InputError(f"--iters {args.iters}: must be at least 1")
-    summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config)
+    summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
+                       device=args.device)
     print(f"stage 2 done ({summary['step']} steps); checkpoint {args.run}/finetune.pt")
     return 0
 
@@ -203,12 +203,8 @@ def render_parser() -> argparse.ArgumentParser:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from shells.render.run import render_run
+    from shells.pipeline import render_run
 
-    for name in ("width", "height"):
-        v = getattr(args, name)
-        if v is not None and v < 1:
-            raise InputError(f"--{name} {v}: must be a positive number of pixels")
     m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
                    height=args.height, out=args.out, stage=args.stage, config=args.config,
                    spp=args.spp)

@@ -13,13 +13,23 @@ Unknown sections or keys are an error (a typo must not be silently ignored).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from shells.errors import InputError
+
+
+@dataclass
+class DataConfig:
+    """How the data set's images are read (one setting for every stage and renderer)."""
+
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # RGB that RGBA images are
+    # composited on and that every renderer shows behind the content (stage 1, stage 2, render)
 
 
 @dataclass
@@ -63,7 +73,6 @@ class TrainConfig:
     normal_weight: float = 0.1  # Eq. 12: |n - grad f / |grad f||
     smooth_eps: float = 0.01  # std of the kernel-smoothness perturbation (world units)
     fd_eps: float = 1e-3  # finite-difference step for grad f (world units)
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # colour behind the scene box
     seed: int = 0  # RNG seed for sampling and init
     checkpoint_every: int = 500  # steps between atomic checkpoints
     log_every: int = 50  # steps between JSON-lines log records
@@ -108,8 +117,8 @@ class RenderConfig:
     delta_s: float = 0.01  # sample spacing inside wider intervals (world units)
     n_max: int = 16  # cap on samples per interval
     full_samples: int = 256  # samples per ray in `full` mode (baseline, whole box)
-    variant: str | None = None  # Mitsuba variant; None picks cuda_ad_rgb on a GPU, else llvm_ad_rgb
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # colour behind the content
+    variant: str | None = None  # Mitsuba variant; None: from the torch device (cuda_ad_rgb on
+    # CUDA, llvm_ad_rgb on the CPU)
     chunk_samples: int = 1 << 24  # rays per batch are limited to this many samples (worst case)
     # `occupancy` mode (Instant-NGP / nerfacc baseline, shells/render/occupancy.py):
     occ_resolution: int = 128  # occupancy-grid cells per axis over the scene box
@@ -129,6 +138,8 @@ class FinetuneConfig:
     pixel_samples: int = 1  # rays per training pixel (k x k jittered, averaged), as in stage 1
     lr: float = 1e-3  # Adam learning rate for hash tables
     lr_mlp: float = 1e-4  # Adam learning rate for MLP weights
+    warmup_iters: int = 0  # linear learning-rate warm-up
+    lr_final_factor: float = 0.1  # cosine decay to lr * this factor at the last step
     seed: int = 0  # RNG seed
     checkpoint_every: int = 500  # steps between atomic checkpoints
     log_every: int = 50  # steps between JSON-lines log records
@@ -138,6 +149,7 @@ class FinetuneConfig:
 class Config:
     """Everything a run needs; saved as RUN/config.json."""
 
+    data: DataConfig = dataclasses.field(default_factory=DataConfig)
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
     shell: ShellConfig = dataclasses.field(default_factory=ShellConfig)
@@ -149,20 +161,35 @@ class Config:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], source: str = "config") -> "Config":
+        """A Config from a stored dict (config.json, a checkpoint), checked.
+
+        Runs made before the one `data.background` setting stored it as `train.background`
+        and `render.background`; those keys are read into `data.background`.
+        """
+        data = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+        for old in ("train", "render"):
+            if isinstance(data.get(old), dict) and "background" in data[old]:
+                bg = data[old].pop("background")
+                data.setdefault("data", {}).setdefault("background", bg)
         cfg = cls()
         cfg.update(data, source)
         return cfg
 
     def update(self, data: dict[str, Any], source: str = "config") -> None:
-        """Override fields from a nested dict; unknown keys raise InputError."""
+        """Override fields from a nested dict, then check every value (`check`).
+
+        Unknown sections or keys, a wrong type or a value out of range raise a one-line
+        InputError naming ``source`` and the key; nothing is changed then.
+        """
         if not isinstance(data, dict):
             raise InputError(f"{source}: expected a JSON object with sections "
                              f"{[f.name for f in dataclasses.fields(self)]}")
         sections = {f.name for f in dataclasses.fields(self)}
+        new = copy.deepcopy(self)
         for name, values in data.items():
             if name not in sections:
                 raise InputError(f"{source}: unknown section '{name}'; valid: {sorted(sections)}")
-            sub = getattr(self, name)
+            sub = getattr(new, name)
             valid = {f.name: f for f in dataclasses.fields(sub)}
             if not isinstance(values, dict):
                 raise InputError(f"{source}: section '{name}' must be a JSON object")
@@ -173,11 +200,27 @@ class Config:
                     value = tuple(value)
                 _check_type(value, valid[key].type, f"{source}: '{name}.{key}'")
                 setattr(sub, key, value)
+        new.check(source)
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, getattr(new, f.name))
+
+    def check(self, source: str = "config") -> None:
+        """Every value in its range (`_RULES`); a one-line InputError for the first that is not."""
+        for key, ok, want in _RULES:
+            section, name = key.split(".")
+            value = getattr(getattr(self, section), name)
+            if not ok(value, self):
+                raise InputError(f"{source}: '{key}' = {value!r}: {want}")
 
 
 def _check_type(value: Any, annotation: Any, where: str) -> None:
     """One-line error when a config value has the wrong JSON type (int accepted for float)."""
     ann = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
+    optional = ann.endswith("| None")
+    if optional:
+        if value is None:
+            return
+        ann = ann[:-len("| None")].strip()
     ok = {"float": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
           "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
           "bool": lambda v: isinstance(v, bool),
@@ -185,7 +228,79 @@ def _check_type(value: Any, annotation: Any, where: str) -> None:
     if ann.startswith("tuple"):
         ok = lambda v: isinstance(v, tuple)  # noqa: E731
     if ok is not None and not ok(value):
-        raise InputError(f"{where} = {value!r}: expected {ann}")
+        raise InputError(f"{where} = {value!r}: expected {ann}{' or null' if optional else ''}")
+
+
+def _square(n: int) -> bool:
+    return n >= 1 and math.isqrt(n) ** 2 == n
+
+
+def _rgb(v: Any) -> bool:
+    return (isinstance(v, tuple) and len(v) == 3
+            and all(isinstance(c, (int, float)) and not isinstance(c, bool) and 0 <= c <= 1
+                    for c in v))
+
+
+def _rule(key: str, ok: Any, want: str) -> tuple[str, Any, str]:
+    """(key, predicate(value, config), what the value must be)."""
+    n_args = ok.__code__.co_argcount - len(ok.__defaults__ or ())
+    return key, (ok if n_args == 2 else lambda v, c: ok(v)), want
+
+
+def _at_least(lo: float) -> tuple[Any, str]:
+    return (lambda v: v >= lo), f"must be >= {lo:g}"
+
+
+def _positive() -> tuple[Any, str]:
+    return (lambda v: v > 0), "must be > 0"
+
+
+def _fraction() -> tuple[Any, str]:
+    return (lambda v: 0 <= v <= 1), "must be in [0, 1]"
+
+
+_SQUARE = (_square, "must be a square number of rays (1, 4, 9, 16, ...)")
+_RULES = [_rule(k, *r) for k, r in [
+    ("data.background", (_rgb, "expected three values (R, G, B) in [0, 1]")),
+    *[(f"field.{k}", _at_least(1)) for k in ("n_levels", "n_features_per_level",
+                                             "log2_hashmap_size", "geo_hidden",
+                                             "geo_feature_dim", "rad_hidden", "rad_layers")],
+    ("field.base_resolution", _at_least(2)),
+    ("field.max_resolution", (lambda v, c: v >= c.field.base_resolution,
+                              "must be >= field.base_resolution")),
+    ("field.sh_degree", ((lambda v: 1 <= v <= 4), "supported degrees are 1..4 (sh_encode)")),
+    ("field.init_radius", _positive()),
+    ("field.min_kernel", _positive()),
+    ("field.init_kernel", (lambda v, c: c.field.min_kernel < v < c.field.max_kernel,
+                           "need field.min_kernel < init_kernel < max_kernel")),
+    *[(f"{s}.{k}", _at_least(1)) for s in ("train", "finetune")
+      for k in ("iters", "batch_rays", "checkpoint_every", "log_every")],
+    *[(f"{s}.pixel_samples", _SQUARE) for s in ("train", "finetune")],
+    *[(f"{s}.batch_rays", (lambda v, c, s=s: v >= getattr(c, s).pixel_samples,
+                           f"must be >= {s}.pixel_samples (rays of one pixel)"))
+      for s in ("train", "finetune")],
+    *[(f"{s}.{k}", _positive()) for s in ("train", "finetune") for k in ("lr", "lr_mlp")],
+    *[(f"{s}.warmup_iters", _at_least(0)) for s in ("train", "finetune")],
+    *[(f"{s}.lr_final_factor", _fraction()) for s in ("train", "finetune")],
+    ("train.n_samples", _at_least(1)),
+    *[(f"train.{k}", _at_least(0)) for k in ("n_importance", "eikonal_weight",
+                                            "kernel_smooth_weight", "normal_weight",
+                                            "smooth_eps", "eval_max_views")],
+    ("train.fd_eps", _positive()),
+    ("shell.resolution", _at_least(8)),
+    *[(f"shell.{k}", _at_least(0)) for k in ("steps", "dilate_curvature", "erode_curvature",
+                                            "beta_d", "sigma_min", "beta_e")],
+    *[(f"shell.{k}", _positive()) for k in ("dt", "cfl", "dilate_zeta", "erode_zeta",
+                                           "v_max")],
+    ("shell.min_component_fraction", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),
+    ("shell.chunk", _at_least(1)),
+    ("render.spp", _SQUARE),
+    *[(f"render.{k}", _at_least(1)) for k in ("dp_max", "n_max", "full_samples",
+                                             "chunk_samples", "occ_resolution", "occ_chunk")],
+    *[(f"render.{k}", _at_least(0)) for k in ("w_s", "occ_jitter", "occ_step")],
+    *[(f"render.{k}", _positive()) for k in ("delta_s", "occ_k")],
+    ("render.ert_eps", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),
+]]
 
 
 def toy_config() -> Config:

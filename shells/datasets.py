@@ -38,7 +38,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shells.cameras import Cameras, opengl_to_opencv
+from shells.cameras import Cameras, opengl_to_opencv, subpixel_offsets
 from shells.errors import InputError, read_json
 
 BLENDER_AABB = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))  # NeRF-synthetic convention
@@ -67,6 +67,25 @@ class Dataset:
 
     def __len__(self) -> int:
         return self.images.shape[0]
+
+    def sample_pixel_rays(self, batch_rays: int, spp: int, gen: torch.Generator,
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A random batch of training pixels and their rays: ``batch_rays // spp`` pixels (flat
+        indices [P] into the images, on the generator's device) with ``spp`` jittered sub-pixel
+        rays each (origins, unit directions [P * spp, 3], a pixel's rays contiguous, on the
+        generator's device). Training stages use this with the step's generator."""
+        n_views, H, W = self.images.shape[:3]
+        n = max(1, batch_rays // spp)
+        idx = torch.randint(0, n_views * H * W, (n,), generator=gen, device=gen.device)
+        cam, rem = idx // (H * W), idx % (H * W)
+        # one ray stays at the pixel centre, drawing no random numbers (runs made before spp
+        # existed are reproduced bit for bit)
+        off = subpixel_offsets(spp, gen if spp > 1 else None, n, device=idx.device)  # [P, spp, 2]
+        px = ((rem % W).float()[:, None] + off[..., 0]).reshape(-1)
+        py = ((rem // W).float()[:, None] + off[..., 1]).reshape(-1)
+        cam = cam[:, None].expand(n, spp).reshape(-1)
+        o, d = self.cameras.rays(cam.cpu(), px.cpu(), py.cpu())
+        return idx, o.to(idx.device), d.to(idx.device)
 
 
 @dataclass

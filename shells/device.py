@@ -18,12 +18,23 @@ def torch_device(name: str | None = None) -> torch.device:
     return torch.device(name)
 
 
-def mitsuba_variant(name: str | None = None) -> str:
-    """Set and return the Mitsuba variant: cuda_ad_rgb on a GPU, llvm_ad_rgb otherwise."""
+def mitsuba_variant(name: str | None = None, device: torch.device | str | None = None) -> str:
+    """Set and return the Mitsuba variant.
+
+    ``name`` (a config's ``render.variant``) wins; otherwise it follows the torch ``device``
+    the Dr.Jit arrays are shared with (cuda_ad_rgb for CUDA, llvm_ad_rgb for the CPU), and
+    without a device it is cuda_ad_rgb when CUDA is available. A variant on another device
+    than ``device`` is an error: torch and Dr.Jit exchange arrays without copies.
+    """
     import mitsuba as mi
 
+    kind = None if device is None else torch.device(device).type
     if name is None:
-        name = "cuda_ad_rgb" if torch.cuda.is_available() else "llvm_ad_rgb"
+        cuda = torch.cuda.is_available() if kind is None else kind == "cuda"
+        name = "cuda_ad_rgb" if cuda else "llvm_ad_rgb"
+    elif kind is not None and name.startswith("cuda") != (kind == "cuda"):
+        raise InputError(f"render.variant '{name}' does not run on the torch device '{kind}'; "
+                         f"set render.variant to null (chosen from the device) or match them")
     if name not in mi.variants():
         raise InputError(f"Mitsuba variant '{name}' is not available; choose from {mi.variants()}")
     if mi.variant() != name:

@@ -1,6 +1,7 @@
 """Dr.Jit inference twin vs the torch ShellField, and the backend-generic NeuS alpha."""
 
 import drjit as dr
+import mitsuba as mi
 import pytest
 import torch
 
@@ -9,8 +10,6 @@ from shells.device import mitsuba_variant
 from shells.fields.drjit_field import DrJitField
 from shells.fields.network import ShellField
 from shells.fields.neus import neus_alpha
-
-mi = pytest.importorskip("mitsuba")
 
 
 def _random_field(aabb, seed=0, **kw):

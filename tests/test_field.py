@@ -7,7 +7,7 @@ import drjit as dr
 import pytest
 import torch
 
-from shells.config import FieldConfig, toy_config
+from shells.config import Config, FieldConfig, toy_config
 from shells.errors import InputError
 from shells.fields.encoding import sh_encode
 from shells.fields.network import ShellField
@@ -147,8 +147,8 @@ def test_state_dict_round_trip():
 def test_bad_inputs():
     with pytest.raises(InputError):
         ShellField(toy_config().field, torch.tensor([[0.0, 0, 0], [1.0, -1, 1]]))
-    with pytest.raises(InputError):
-        _field(min_kernel=0.1, init_kernel=0.05)
+    with pytest.raises(InputError, match="init_kernel"):  # checked when a config is loaded
+        Config().update({"field": {"min_kernel": 0.1, "init_kernel": 0.05}}, "x.json")
     with pytest.raises(InputError):
         _field().sdf(torch.zeros(5, 2))
     with pytest.raises(InputError):

@@ -14,7 +14,8 @@ from shells.config import toy_config
 from shells.errors import InputError
 from shells.finetune import finetune
 from shells.pipeline import extract_run
-from shells.training import load_field, train
+from shells.run import load_field
+from shells.training import train
 
 
 def _tiny_config():

@@ -13,15 +13,16 @@ import pytest
 import torch
 import trimesh
 
-from shells.config import RenderConfig
+from shells.config import Config, RenderConfig
 from shells.device import mitsuba_variant
 from shells.errors import InputError
 from shells.fields.drjit_field import FieldSample
-from shells.render.frame import MODES, composite, render_image, shade_samples
+from shells.render.frame import MODES, render_image
 from shells.render.occupancy import (OccupancyGrid, build_occupancy_grid, march_step,
                                      occupancy_grid, raycast_floor, render_occupancy)
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import place_packed
+from shells.render.shading import composite_packed, shade_samples
 from tests.test_render import camera_rays
 
 AABB = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
@@ -103,8 +104,8 @@ def test_occupancy_matches_dense_full_render_with_far_fewer_samples(sphere):
     po, pd = to_point3f(o), to_point3f(d, mi.Vector3f)
     samples = place_packed(box_intervals(po, pd, AABB), cfg, fixed=full_n)
     alpha, rgb = shade_samples(sphere, samples, po, pd)
-    bg = mi.Color3f(*cfg.background)
-    want, want_opacity = composite(alpha, rgb, samples.start, samples.count, bg)
+    bg = mi.Color3f(1.0, 1.0, 1.0)  # render_occupancy's default background
+    want, want_opacity = composite_packed(alpha, rgb, samples.start, samples.count, bg)
     diff = np.abs(colours(colour) - colours(want))
     # Skipped space holds opacity <= e^-(k + margins / s), here e^-(5 + 5.8) ~ 2e-5 (module
     # docstring); both renders use the NeuS section formula, exact for an SDF that is linear
@@ -130,7 +131,7 @@ def test_early_termination_stops_rays_in_the_opaque_sphere(sphere):
     dt = march_step(AABB, cfg)  # diagonal / 1024 = 0.00338
     o = torch.tensor([[0.0, 0.0, -2.5], [0.0, 0.9, -2.5]])
     d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])  # ray 0 hits the sphere, ray 1 misses
-    colour, opacity, count = render_occupancy(sphere, o, d, cfg, AABB, grid)
+    colour, opacity, count = render_occupancy(sphere, o, d, cfg, AABB, grid=grid)
     n_hit, n_miss = count.numpy().tolist()
     # ray 1 crosses the whole box (z from -1 to 1) without termination: ceil(2 / dt) samples
     assert n_miss == math.ceil(2.0 / dt)
@@ -144,7 +145,7 @@ def test_early_termination_stops_rays_in_the_opaque_sphere(sphere):
     assert 1.0 - opacity.numpy()[0] < cfg.ert_eps
     # without termination the ray runs to the far side of the box; the colour barely changes
     no_ert = RenderConfig(ert_eps=0.0)
-    colour2, _, count2 = render_occupancy(sphere, o, d, no_ert, AABB, grid)
+    colour2, _, count2 = render_occupancy(sphere, o, d, no_ert, AABB, grid=grid)
     assert count2.numpy().tolist() == [n_miss, n_miss]
     assert np.abs(colours(colour) - colours(colour2)).max() < 2 * cfg.ert_eps
 
@@ -167,8 +168,8 @@ def test_render_image_occupancy_mode_and_errors(sphere):
     np.testing.assert_allclose(colours(colour), [[1.0, 1.0, 1.0]])
     with pytest.raises(InputError, match="aabb"):
         render_image(sphere, o, d, 16, 16, cfg, "occupancy")
-    with pytest.raises(InputError, match="occ_step"):
-        render_occupancy(sphere, o, d, RenderConfig(occ_step=-1.0), AABB)
+    with pytest.raises(InputError, match="occ_step"):  # checked when a config is loaded
+        Config().update({"render": {"occ_step": -1.0}}, "x.json")
 
 
 def test_raycast_floor_hits_the_outer_shell():
@@ -188,7 +189,9 @@ def test_render_speed_bench_end_to_end(tmp_path, tiny_blender, capsys):
     sphere r = 0.5, shells at 0.6 / 0.4), with small settings."""
     from shells.config import toy_config
     from shells.errors import write_json
-    from shells.training import build_field, make_optimizer, save_checkpoint
+    from shells.loop import make_optimizer
+    from shells.run import save_checkpoint
+    from shells.training import build_field
 
     run = tmp_path / "run"
     cfg = toy_config()

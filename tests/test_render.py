@@ -17,7 +17,10 @@ from shells.errors import InputError
 from shells.metrics import psnr
 from shells.fields import neus
 from shells.fields.drjit_field import DrJitField, FieldSample
-from shells.render.frame import composite, neus_alpha, render_image, render_rays
+from shells.fields.neus import neus_alpha
+from shells.render.band import render_band_rays
+from shells.render.frame import render_image, render_rays
+from shells.render.shading import composite_packed
 from shells.render.raycast import ShellScene
 
 AABB = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
@@ -36,29 +39,21 @@ class SphereField:
                            normal=n, rgb=mi.Color3f(0.5 + 0.5 * n))
 
 
-def torch_band_render(field_fn, scene, o, d, cfg):  # -> colour [R, 3], samples per ray [R]
-    """Reference: padded torch samples (the stage-2 path) + shells.fields.neus in torch.
-    field_fn(x [N, 3], d [N, 3]) -> sdf [N], s [N], normal [N, 3], rgb [N, 3]."""
-    from shells.render.sampler import band_samples
+class TorchSphere(torch.nn.Module):
+    """The SphereField as a torch module (the interface of ShellField: field(x, d) -> dict)."""
 
-    t, delta, mask, solid = band_samples(scene, o, d, cfg)
-    R, S = t.shape
-    x = (o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)
-    dd = d[:, None].expand(R, S, 3).reshape(-1, 3)
-    sdf, s, normal, rgb = field_fn(x, dd)
-    alpha = neus.neus_alpha(sdf, s, (dd * normal).sum(-1), delta.reshape(-1)).reshape(R, S)
-    rgb = rgb.reshape(R, S, 3)
-    # rays that reach M- end on their last sample's colour, the others on the background
-    last = torch.stack([rgb[r, max(int(mask[r].sum()) - 1, 0)] for r in range(R)])
-    end = torch.where(solid[:, None], last, torch.tensor(cfg.background).expand(R, 3))
-    colour, _, _ = neus.composite(alpha * mask, rgb, end)
-    return colour, mask.sum(1)
+    def __init__(self, radius: float = 0.5, s: float = 0.005) -> None:
+        super().__init__()
+        self.radius, self.s = radius, s
+
+    def forward(self, x, d):  # x, d: [N, 3]
+        r = x.norm(dim=-1)
+        n = x / r.clamp_min(1e-8)[:, None]
+        return {"sdf": r - self.radius, "s": torch.full_like(r, self.s), "normal": n,
+                "rgb": 0.5 + 0.5 * n}
 
 
-def torch_sphere(x, d, radius=0.5, s=0.005):  # the SphereField in torch
-    r = x.norm(dim=-1)
-    n = x / r.clamp_min(1e-8)[:, None]
-    return r - radius, torch.full_like(r, s), n, 0.5 + 0.5 * n
+WHITE = torch.ones(3)
 
 
 def camera_rays(width: int, height: int, dist: float = 2.5, fov: float = 0.7):
@@ -98,7 +93,7 @@ def test_composite_hand_worked():
     alpha = mi.Float([0.5, 0.5, 1.0, 0.2])
     rgb = mi.Color3f([1.0, 0.0, 0.0, 0.3], [0.0, 1.0, 0.0, 0.3], [0.0, 0.0, 1.0, 0.3])
     start, count = mi.UInt32([0, 3, 4]), mi.UInt32([3, 1, 0])
-    colour, opacity = composite(alpha, rgb, start, count, mi.Color3f(1.0, 1.0, 1.0))
+    colour, opacity = composite_packed(alpha, rgb, start, count, mi.Color3f(1.0, 1.0, 1.0))
     # ray 0: T = [1, 0.5, 0.25] -> weights [0.5, 0.25, 0.25], T_end = 0: (0.5, 0.25, 0.25)
     # ray 1: weight 0.2 on 0.3 grey + 0.8 white = 0.86; ray 2: no samples -> background
     np.testing.assert_allclose(np.asarray(colour).T, [[0.5, 0.25, 0.25], [0.86] * 3, [1.0] * 3],
@@ -118,7 +113,7 @@ def test_composite_matches_torch_reference():
     bg = torch.tensor([0.2, 0.4, 0.6])
     want, _, want_opacity = neus.composite(alpha, rgb, bg)
     start = torch.cumsum(counts, 0) - counts
-    colour, opacity = composite(mi.Float(alpha[mask].numpy()),
+    colour, opacity = composite_packed(mi.Float(alpha[mask].numpy()),
                                 mi.Color3f(*[mi.Float(rgb[mask][:, c].numpy()) for c in range(3)]),
                                 mi.UInt32(start.numpy().astype(np.uint32)),
                                 mi.UInt32(counts.numpy().astype(np.uint32)), mi.Color3f(*bg.tolist()))
@@ -130,7 +125,8 @@ def test_composite_matches_torch_reference():
 def test_packed_drjit_band_render_matches_padded_torch_reference(shells):
     o, d = camera_rays(24, 24)
     cfg = RenderConfig()
-    want, want_spp = torch_band_render(torch_sphere, shells, o, d, cfg)
+    ref = render_band_rays(TorchSphere(), shells, o, d, cfg, WHITE)
+    want, want_spp = ref["color"], ref["spp"]
     colour, spp = render_rays(SphereField(), o, d, cfg, "band", scene=shells)
     got = torch.from_numpy(np.asarray(colour).T.copy())
     assert torch.equal(torch.from_numpy(spp.numpy().astype(np.int64)), want_spp)
@@ -147,14 +143,11 @@ def test_trained_field_twin_band_render_matches_torch(shells):
     torch.manual_seed(0)
     field = ShellField(toy_config().field, torch.tensor(AABB)).eval()
 
-    def field_fn(x, d):
-        with torch.no_grad():
-            out = field(x, d)
-        return out["sdf"], out["s"], out["normal"], out["rgb"]
-
     o, d = camera_rays(16, 16)
     cfg = RenderConfig()
-    want, want_spp = torch_band_render(field_fn, shells, o, d, cfg)
+    with torch.no_grad():
+        ref = render_band_rays(field, shells, o, d, cfg, WHITE)
+    want, want_spp = ref["color"], ref["spp"]
     colour, spp = render_rays(DrJitField(field), o, d, cfg, "band", scene=shells)
     got = torch.from_numpy(np.asarray(colour).T.copy())
     assert torch.equal(torch.from_numpy(spp.numpy().astype(np.int64)), want_spp)
@@ -206,10 +199,10 @@ def test_spp_averages_the_sub_pixel_rays(shells):
 
 
 def test_band_render_respects_background(shells):
-    cfg = RenderConfig(background=(0.0, 0.0, 0.0))
     o = torch.tensor([[0.0, 0.0, -2.5], [0.0, 0.9, -2.5]])
     d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
-    colour, count = render_rays(SphereField(), o, d, cfg, "band", scene=shells)
+    colour, count = render_rays(SphereField(), o, d, RenderConfig(), "band", scene=shells,
+                                background=(0.0, 0.0, 0.0))
     # ray 1 misses M+ (offset 0.9 > 0.6): zero samples, black background
     assert count.numpy().tolist()[1] == 0
     np.testing.assert_allclose(np.asarray(colour)[:, 1], [0.0, 0.0, 0.0])
@@ -230,7 +223,7 @@ def test_bad_mode_raises(shells):
 
 def test_render_views_writes_images_and_metrics(shells, tmp_path, tiny_blender):
     from shells.datasets import load_dataset
-    from shells.render.run import render_views, resized_cameras
+    from shells.render.views import render_views, resized_cameras
 
     data = load_dataset(tiny_blender, "test")  # 2 views, 16x16, cameras 3 units from the origin
     cfg = RenderConfig()
@@ -254,7 +247,7 @@ def test_render_views_writes_images_and_metrics(shells, tmp_path, tiny_blender):
 
 
 def test_heatmap_ends():
-    from shells.render.run import heatmap
+    from shells.render.views import heatmap
 
     h = heatmap(torch.tensor([[0, 8, 16]]), 16.0)
     assert h.shape == (1, 3, 3) and h.dtype == np.uint8
@@ -263,7 +256,7 @@ def test_heatmap_ends():
 
 def test_render_run_errors_write_nothing(tmp_path):
     from shells.errors import write_json
-    from shells.render.run import render_run
+    from shells.pipeline import render_run
 
     run = tmp_path / "run"
     run.mkdir()
@@ -283,14 +276,15 @@ def test_render_run_errors_write_nothing(tmp_path):
 def test_render_run_end_to_end(tmp_path, tiny_blender):
     """A run directory as the pipeline leaves it (untrained field: geometric-init sphere r = 0.5,
     shells at 0.6 / 0.4) -> images, heatmaps and metrics.json; full mode at a reduced size."""
-    pytest.importorskip("shells.levelset.mesh")  # load_ply (shells/levelset, in progress)
     import json
 
     from shells.config import toy_config
     from shells.errors import write_json
     from shells.fields.network import ShellField
-    from shells.render.run import render_run
-    from shells.training import build_field, make_optimizer, save_checkpoint
+    from shells.loop import make_optimizer
+    from shells.pipeline import render_run
+    from shells.run import save_checkpoint
+    from shells.training import build_field
 
     run = tmp_path / "run"
     cfg = toy_config()

@@ -12,7 +12,8 @@ import mitsuba as mi
 from shells.config import RenderConfig
 from shells.device import mitsuba_variant
 from shells.render.raycast import Intervals, ShellScene
-from shells.render.sampler import band_samples, interval_counts, place_packed, place_padded
+from shells.render.sampler import (band_samples, interval_counts, place_packed, place_padded,
+                                   solid_end)
 
 CFG = RenderConfig(w_s=0.01, delta_s=0.01, n_max=16)
 
@@ -54,8 +55,22 @@ def test_packed_placement_hand_worked():
     assert p.max_count == 5 and p.size == 6
 
 
+def test_solid_end_rule_hand_worked():
+    # ray 0 reached M- after its intervals, ray 1 left the shells (no M- hit), ray 2 hit M- but
+    # took no samples (nothing to end on): only ray 0 ends on its last sample
+    e, x, c = ([[1.0, 1.035], [2.0, 2.004], [0.0, 0.0]], [[1.005, 1.07], [2.004, 0.0], [0.0, 0.0]],
+               [2, 1, 0])
+    iv = Intervals.from_arrays(e, x, c, t_inner=[1.07, float("inf"), 0.5])
+    assert solid_end(iv.t_inner.array, mi.UInt32([5, 1, 0])).numpy().tolist() == [True, False,
+                                                                                 False]
+    assert place_packed(iv, CFG).solid.numpy().tolist() == [True, False, False]
+    assert place_padded(iv, CFG)[3].tolist() == [True, False, False]
+    # the scene box of `full` mode has no M-: no ray ends solid
+    assert place_padded(hand_intervals(), CFG)[3].tolist() == [False, False, False]
+
+
 def test_padded_placement_hand_worked():
-    t, delta, mask = place_padded(hand_intervals(), CFG)
+    t, delta, mask, _ = place_padded(hand_intervals(), CFG)
     assert t.shape == delta.shape == mask.shape == (3, 5)  # S = largest per-ray count
     assert mask.tolist() == [[True] * 5, [True] + [False] * 4, [False] * 5]
     np.testing.assert_allclose(t[0].numpy(), [1.0025, 1.042, 1.049, 1.056, 1.063], atol=1e-6)
@@ -81,7 +96,7 @@ def test_packed_and_padded_agree_on_random_intervals():
     count = torch.randint(0, K + 1, (R,), generator=g)
     iv = Intervals.from_arrays(enter, exit_, count)
     p = place_packed(iv, CFG)
-    t, delta, mask = place_padded(iv, CFG)
+    t, delta, mask, _ = place_padded(iv, CFG)
     start, cnt = p.start.numpy(), p.count.numpy()
     assert (mask.sum(1).numpy() == cnt).all()
     for r in range(R):

@@ -7,7 +7,6 @@ loader (shells.datasets) when it exists.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import time
@@ -184,8 +183,6 @@ def test_json_cameras_hit_the_sphere_where_alpha(sphere_set, factor):
 
 @pytest.mark.parametrize("factor", [1, 2])
 def test_loader_cameras_hit_the_sphere_where_alpha(sphere_set, factor):
-    if importlib.util.find_spec("shells.datasets") is None:
-        pytest.skip("shells/datasets.py not written yet")
     from shells.datasets import load_dataset
 
     for split in ("train", "test"):

@@ -9,7 +9,9 @@ import torch
 
 from shells.cli import train_main
 from shells.config import toy_config
-from shells.training import load_field, lr_factor, train
+from shells.loop import lr_factor
+from shells.run import load_field
+from shells.training import train
 
 
 def test_lr_schedule_hand_worked():
@@ -92,14 +94,15 @@ def test_config_values_are_type_checked():
     from shells.errors import InputError
 
     cfg = Config()
-    cfg.update({"shell": {"dilate_zeta": 1}, "train": {"background": [0, 0, 0]},
+    cfg.update({"shell": {"dilate_zeta": 1}, "data": {"background": [0, 0, 0]},
                 "render": {"variant": "llvm_ad_rgb"}})  # int for a float, list for a tuple
-    assert cfg.shell.dilate_zeta == 1 and cfg.train.background == (0, 0, 0)
+    assert cfg.shell.dilate_zeta == 1 and cfg.data.background == (0, 0, 0)
     for bad, where in (({"train": {"iters": 2.5}}, "train.iters"),
                        ({"train": {"iters": True}}, "train.iters"),
                        ({"field": {"global_kernel": 1}}, "field.global_kernel"),
                        ({"shell": {"beta_d": "0.6"}}, "shell.beta_d"),
-                       ({"train": {"background": 1.0}}, "train.background")):
+                       ({"data": {"background": 1.0}}, "data.background"),
+                       ({"render": {"variant": 1}}, "render.variant")):
         with pytest.raises(InputError, match=where):
             Config().update(bad, "x.json")
 
@@ -108,12 +111,11 @@ def test_supersampled_training_pixels(tiny_blender, tmp_path, capsys):
     # train.pixel_samples = 4: batch_rays // 4 pixels per step, each with one jittered ray in
     # each quarter of the pixel (projected back onto the image, the rays land there)
     from shells.datasets import load_dataset
-    from shells.training import sample_pixel_rays
 
     data = load_dataset(tiny_blender, "train")
     H, W = data.images.shape[1:3]
     gen = torch.Generator().manual_seed(1)
-    idx, o, d = sample_pixel_rays(data, 64, 4, gen)
+    idx, o, d = data.sample_pixel_rays(64, 4, gen)
     assert idx.shape == (16,) and o.shape == d.shape == (64, 3)
     cam = (idx // (H * W)).repeat_interleave(4)
     uv, _ = data.cameras.project(o + d, cam)

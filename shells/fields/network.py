@@ -28,7 +28,7 @@ from torch import nn
 
 from shells.config import FieldConfig
 from shells.errors import InputError
-from shells.fields.encoding import MAX_DEGREE, sh_dim, sh_encode
+from shells.fields.encoding import sh_dim, sh_encode
 from shells.fields.hashgrid import HashGrid, per_level_scale
 
 NORMAL_EPS = 1e-12  # n = n_raw / max(|n_raw|, eps)
@@ -52,11 +52,6 @@ class ShellField(nn.Module):
         if aabb.shape != (2, 3) or not bool((aabb[1] > aabb[0]).all()):
             raise InputError(f"ShellField: aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] "
                              f"with max > min, got {aabb.tolist()}")
-        if not 0 < cfg.min_kernel < cfg.init_kernel < cfg.max_kernel:
-            raise InputError(f"field config: need 0 < min_kernel < init_kernel < max_kernel, got "
-                             f"{cfg.min_kernel}, {cfg.init_kernel}, {cfg.max_kernel}")
-        if not 1 <= cfg.sh_degree <= MAX_DEGREE:
-            raise InputError(f"field config: sh_degree {cfg.sh_degree} not supported; use 1..4")
         self.cfg = cfg
         self.register_buffer("aabb", aabb.clone())
         L, Fl = cfg.n_levels, cfg.n_features_per_level

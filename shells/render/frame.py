@@ -4,12 +4,13 @@ Per batch of rays (§3.4, §4.2):
 
     band: rays -> M+/M- intervals (raycast) -> Procedure 3 samples (sampler, packed); a ray
           that reaches M- (the solid interior) ends there, its remaining transmittance taking
-          the colour of its last sample instead of the background (`solid_end_colour`)
+          the colour of its last sample instead of the background (`sampler.solid_end`, the
+          rule the torch band renderer `shells.render.band` applies too)
     full: rays -> scene-box interval          -> cfg.full_samples samples per ray (same placement
           with a fixed count: linspace(near, far, N + 2)[1:-1], sections of (far - near) / N)
     then: one batched field evaluation at all samples -> NeuS alpha (shells.fields.neus, the
           formula shared with training) with cos = d . n and the sample's section length ->
-          front-to-back compositing per ray over the background.
+          front-to-back compositing per ray over the background (`shells.render.shading`).
     occupancy: occupancy-grid ray marching with empty-space skipping and early termination
           (the Instant-NGP / nerfacc baseline, shells.render.occupancy): same NeuS alpha and
           compositing, in rounds of cfg.occ_chunk samples per ray.
@@ -30,58 +31,14 @@ import torch
 
 from shells.config import RenderConfig
 from shells.errors import InputError
-from shells.fields.neus import neus_alpha
+from shells.render.occupancy import render_occupancy
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
-from shells.render.sampler import PackedSamples, place_packed
+from shells.render.sampler import place_packed
+from shells.render.shading import composite_packed, end_colour, shade_samples
+
+WHITE = (1.0, 1.0, 1.0)
 
 MODES = ("band", "full", "occupancy")
-
-
-@dr.syntax
-def composite(alpha: Any,  # mi.Float [M] packed per ray, front to back
-              rgb: Any,  # mi.Color3f [M]
-              start: Any,  # mi.UInt32 [R] first sample of each ray
-              count: Any,  # mi.UInt32 [R] samples per ray
-              background: Any,  # mi.Color3f, width 1 or R
-              ) -> tuple[Any, Any]:  # colour mi.Color3f [R], opacity mi.Float [R]
-    """C = sum_i T_i alpha_i c_i + T_n bg, T_i = prod_{j<i} (1 - alpha_j), per ray."""
-    i = mi.UInt32(0)  # sample index within the ray
-    trans = dr.ones(mi.Float, dr.width(count))  # transmittance T_i
-    acc = dr.zeros(mi.Color3f, dr.width(count))  # accumulated colour
-    while dr.hint(i < count, max_iterations=-1, label="composite"):
-        idx = start + i
-        a = dr.gather(mi.Float, alpha, idx)
-        acc += (trans * a) * dr.gather(mi.Color3f, rgb, idx)
-        trans *= 1.0 - a
-        i += 1
-    return acc + trans * background, 1.0 - trans
-
-
-def shade_samples(field: Any, samples: PackedSamples, o: Any, d: Any) -> tuple[Any, Any]:
-    """One batched field evaluation at the packed samples: alpha [M], rgb [M]."""
-    ro = dr.gather(mi.Point3f, o, samples.ray)
-    rd = dr.gather(mi.Vector3f, d, samples.ray)
-    x = dr.fma(rd, samples.t, ro)
-    f = field.eval(x, rd)
-    alpha = neus_alpha(f.sdf, f.s, dr.dot(rd, f.normal), samples.delta)
-    rgb = mi.Color3f(f.rgb)
-    # One kernel for all four outputs: compositing gathers from them, and a gather source that
-    # is still symbolic gets evaluated on its own (the field would run once per output).
-    dr.eval(alpha, rgb)
-    return alpha, rgb
-
-
-def solid_end_colour(rgb: Any,  # mi.Color3f [M] packed sample colours
-                     samples: PackedSamples,
-                     t_inner: Any,  # mi.Float [R] first M- hit, inf if none
-                     background: Any,  # mi.Color3f, width 1
-                     ) -> Any:  # mi.Color3f [R]
-    """What a ray sees behind its last sample: M- bounds the solid interior, so a ray that
-    reached it is absorbed there and its remaining transmittance takes the colour of its last
-    sample (the surface it ended on); other rays see the background."""
-    solid = dr.isfinite(t_inner) & (samples.count > 0)
-    last = dr.gather(mi.Color3f, rgb, samples.start + samples.count - 1, solid)
-    return dr.select(solid, last, background)
 
 
 def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
@@ -91,8 +48,9 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
                 mode: str = "band",
                 scene: ShellScene | None = None,  # needed in band mode
                 aabb: Any = None,  # [2, 3] scene box, needed in full and occupancy modes
+                background: tuple[float, float, float] = WHITE,  # the data set's (data.background)
                 ) -> tuple[Any, Any]:  # colour mi.Color3f [R], samples per ray mi.UInt32 [R]
-    """Colour of each ray over cfg.background, and how many field samples it took."""
+    """Colour of each ray over the background, and how many field samples it took."""
     o = to_point3f(origins, mi.Point3f)
     d = to_point3f(dirs, mi.Vector3f)
     if mode == "band":
@@ -105,20 +63,16 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
             raise InputError("full mode needs the scene box: pass aabb [2, 3]")
         samples = place_packed(box_intervals(o, d, aabb), cfg, fixed=cfg.full_samples)
     elif mode == "occupancy":
-        from shells.render.occupancy import render_occupancy  # imports this module
-
-        colour, _, count = render_occupancy(field, o, d, cfg, aabb)
+        colour, _, count = render_occupancy(field, o, d, cfg, aabb, background)
         return colour, count
     else:
         raise InputError(f"mode '{mode}': expected one of {MODES}")
-    bg = mi.Color3f(*[float(c) for c in cfg.background])
+    bg = mi.Color3f(*[float(c) for c in background])
     if samples.size == 0:
         return dr.zeros(mi.Color3f, dr.width(d)) + bg, samples.count
     alpha, rgb = shade_samples(field, samples, o, d)
-    end = bg
-    if mode == "band":
-        end = solid_end_colour(rgb, samples, iv.t_inner.array, bg)
-    colour, _ = composite(alpha, rgb, samples.start, samples.count, end)
+    end = end_colour(rgb, samples, bg)  # the solid-end rule (background in full mode)
+    colour, _ = composite_packed(alpha, rgb, samples.start, samples.count, end)
     dr.eval(colour, samples.count)
     return colour, samples.count
 
@@ -131,6 +85,7 @@ def render_image(field: Any,
                  mode: str = "band",
                  scene: ShellScene | None = None,
                  aabb: Any = None,
+                 background: tuple[float, float, float] = WHITE,
                  ) -> tuple[torch.Tensor, torch.Tensor]:  # rgb [H, W, 3] float32, spp [H, W] int
     """A frame in ray chunks of at most cfg.chunk_samples samples (upper bound per ray).
 
@@ -146,7 +101,7 @@ def render_image(field: Any,
     rgbs, spps = [], []
     for a in range(0, R, chunk):
         colour, count = render_rays(field, origins[a:a + chunk], dirs[a:a + chunk], cfg, mode,
-                                    scene, aabb)
+                                    scene, aabb, background)
         n = dr.width(count)
         rgbs.append(mi.TensorXf(dr.ravel(colour), (n, 3)).torch())
         spps.append(mi.TensorXf(mi.Float(count), (n,)).torch())

@@ -28,8 +28,8 @@ Ray marching (`render_occupancy`)
     without the per-axis bookkeeping). Rays advance in rounds: each round marches every live ray
     until it has collected K samples (or left the box), evaluates the field at all collected
     samples at once, computes the NeuS alpha with the shared formula
-    (``shells.fields.neus.neus_alpha`` through ``frame.shade_samples``, cos = d . n, section dt)
-    and composites them front to back with ``frame.composite``. Partial results chain exactly:
+    (``shells.fields.neus.neus_alpha`` through ``shading.shade_samples``, cos = d . n, section dt)
+    and composites them front to back with ``shading.composite_packed``. Partial results chain exactly:
 
         C += T * C_round,  T *= 1 - O_round        (C_round, O_round over a black background)
 
@@ -62,9 +62,9 @@ import torch
 from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.levelset.grid import check_aabb
-from shells.render.frame import composite, shade_samples
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import PackedSamples
+from shells.render.shading import composite_packed, shade_samples
 
 GRID_EVAL_CHUNK = 1 << 21  # points per field evaluation while building the grid
 MAX_ROUND_GROWTH = 8  # samples per ray and round grow up to 8 x cfg.occ_chunk as rays die
@@ -168,8 +168,6 @@ def occupancy_grid(field: Any, aabb: Any, cfg: RenderConfig) -> OccupancyGrid:
 
 def march_step(aabb: Any, cfg: RenderConfig) -> float:
     """dt: cfg.occ_step, or the box diagonal / 1024 when that is 0."""
-    if cfg.occ_step < 0:
-        raise InputError(f"occ_step={cfg.occ_step}: must be >= 0 (0 = box diagonal / 1024)")
     if cfg.occ_step > 0:
         return float(cfg.occ_step)
     box = _box(aabb)
@@ -216,13 +214,12 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
                      dirs: Any,  # [R, 3] unit directions
                      cfg: RenderConfig,
                      aabb: Any,  # [2, 3] scene box
+                     background: tuple[float, float, float] = (1.0, 1.0, 1.0),
                      grid: OccupancyGrid | None = None,  # default: occupancy_grid(field, ...)
                      ) -> tuple[Any, Any, Any]:
-    """Colour mi.Color3f [R] over cfg.background, opacity mi.Float [R], samples mi.UInt32 [R]."""
+    """Colour mi.Color3f [R] over the background, opacity mi.Float [R], samples mi.UInt32 [R]."""
     if aabb is None:
         raise InputError("occupancy mode needs the scene box: pass aabb [2, 3]")
-    if cfg.occ_chunk < 1:
-        raise InputError(f"occ_chunk={cfg.occ_chunk}: must be >= 1")
     grid = grid if grid is not None else occupancy_grid(field, aabb, cfg)
     o = to_point3f(origins, mi.Point3f)
     d = to_point3f(dirs, mi.Vector3f)
@@ -230,7 +227,7 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
     dt = march_step(aabb, cfg)
     lo, cell = mi.Vector3f(*grid.lo), mi.Vector3f(*grid.cell)
     inv_cell = mi.Vector3f(*[1.0 / c for c in grid.cell])
-    bg = mi.Color3f(*[float(c) for c in cfg.background])
+    bg = mi.Color3f(*[float(c) for c in background])
 
     iv = box_intervals(o, d, aabb)  # K = 1 interval: [near, far], count 0 on a miss
     near, far = iv.enter.array, iv.exit.array  # [R]
@@ -268,7 +265,7 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
                                     delta=dr.full(mi.Float, dt, M), ray=idx // K,
                                     start=dr.prefix_sum(n), count=n, max_count=K)
             alpha, rgb = shade_samples(field, samples, ro, rd)  # [M] each
-            c_round, o_round = composite(alpha, rgb, samples.start, n, black)  # [Ra]
+            c_round, o_round = composite_packed(alpha, rgb, samples.start, n, black)  # [Ra]
             C = dr.fma(c_round, T, C)
             T = T * (1.0 - o_round)
             n_total = n_total + n

@@ -17,6 +17,8 @@ layout from the same counts:
   count [R], samples of a ray contiguous and front to back;
 * padded (stage-2 training, torch): t [R, S], delta [R, S], mask [R, S], S = the largest
   per-ray count of the batch (at least 1); unused slots are 0 and masked out.
+
+Both layouts also say which rays end solid (`solid_end`, the one rule both renderers apply).
 """
 
 from __future__ import annotations
@@ -42,10 +44,23 @@ class PackedSamples:
     start: Any  # mi.UInt32 [R] first sample of each ray
     count: Any  # mi.UInt32 [R] samples per ray
     max_count: int  # largest count (loop bound for compositing)
+    solid: Any = None  # mi.Bool [R] the ray ends on its last sample (`solid_end`); None: no ray
 
     @property
     def size(self) -> int:
         return dr.width(self.t) if self.max_count > 0 else 0
+
+
+def solid_end(t_inner: Any,  # mi.Float [R] first M- hit of each ray, inf if none
+              count: Any,  # mi.UInt32 [R] samples of each ray
+              ) -> Any:  # mi.Bool [R]
+    """The solid-end rule of band rendering, for the Dr.Jit renderer and the torch one alike.
+
+    M- bounds the solid interior: a ray that reached it (and took samples before) is absorbed
+    there, so its remaining transmittance takes the colour of its last sample (the surface it
+    ended on) instead of the background. Rays that left every shell see the background.
+    """
+    return dr.isfinite(t_inner) & (count > 0)
 
 
 def interval_counts(width: Any,  # mi.Float [...] interval widths (world units)
@@ -116,15 +131,17 @@ def place_packed(iv: Intervals, cfg: RenderConfig,
         _fill(iv.enter.array, iv.exit.array, n_int, per_ray, start, K, t, delta, ray)
     dr.eval(t, delta, ray)
     return PackedSamples(t=t, delta=delta, ray=ray, start=start, count=per_ray,
-                         max_count=max_count)
+                         max_count=max_count, solid=solid_end(iv.t_inner.array, per_ray))
 
 
 def place_padded(iv: Intervals, cfg: RenderConfig) -> tuple[torch.Tensor, torch.Tensor,
-                                                           torch.Tensor]:
-    """Padded torch layout: t [R, S], delta [R, S], mask [R, S] bool."""
+                                                           torch.Tensor, torch.Tensor]:
+    """Padded torch layout: t [R, S], delta [R, S], mask [R, S] bool, solid [R] bool
+    (`solid_end`), on the device of the Mitsuba variant."""
     R, K = iv.enter.shape
     n_int, per_ray = _per_interval_counts(iv, cfg, None)
-    dr.eval(n_int, per_ray)
+    solid = solid_end(iv.t_inner.array, per_ray)
+    dr.eval(n_int, per_ray, solid)
     S = max(int(dr.max(per_ray)[0]) if R else 0, 1)
     t = dr.zeros(mi.Float, R * S)
     delta = dr.zeros(mi.Float, R * S)
@@ -137,7 +154,8 @@ def place_padded(iv: Intervals, cfg: RenderConfig) -> tuple[torch.Tensor, torch.
     delta_torch = mi.TensorXf(delta, (R, S)).torch()
     count = mi.TensorXf(mi.Float(per_ray), (R,)).torch()
     mask = torch.arange(S, device=t_torch.device)[None, :] < count[:, None]
-    return t_torch, delta_torch, mask
+    solid_torch = mi.TensorXf(mi.Float(solid), (R,)).torch() > 0.5
+    return t_torch, delta_torch, mask, solid_torch
 
 
 def band_samples(scene: ShellScene,
@@ -145,10 +163,7 @@ def band_samples(scene: ShellScene,
                  dirs: Any,  # [R, 3] unit directions
                  cfg: RenderConfig,
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Stage-2 training samples: t [R, S], delta [R, S], mask [R, S] bool and solid [R] bool
-    (the ray reached M-: its remaining transmittance ends on its last sample, as in
-    `shells.render.frame.solid_end_colour`), torch, no grad."""
-    iv = scene.intervals(origins, dirs, cfg.dp_max)
-    t, delta, mask = place_padded(iv, cfg)
-    solid = torch.isfinite(iv.t_inner.torch().reshape(-1)) & mask.any(-1)
-    return t, delta, mask, solid
+    """Stage-2 training samples of rays cast against the shells: t [R, S], delta [R, S],
+    mask [R, S] bool and solid [R] bool (`solid_end`), torch, no grad, on the device of the
+    Mitsuba variant (the torch rays' device when the variant matches it)."""
+    return place_padded(scene.intervals(origins, dirs, cfg.dp_max), cfg)

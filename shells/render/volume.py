@@ -77,7 +77,7 @@ def section_edges(t: torch.Tensor,  # [R, S] sorted
     return torch.cat([near[:, None], mids, far[:, None]], dim=-1)
 
 
-def render_rays(field: torch.nn.Module,
+def render_volume_rays(field: torch.nn.Module,
                 origins: torch.Tensor,  # [R, 3]
                 dirs: torch.Tensor,  # [R, 3] unit
                 n_samples: int,
@@ -119,7 +119,7 @@ def render_rays(field: torch.nn.Module,
 
 
 @torch.no_grad()
-def render_image(field: torch.nn.Module,
+def render_volume_image(field: torch.nn.Module,
                  origins: torch.Tensor,  # [P, 3]
                  dirs: torch.Tensor,  # [P, 3]
                  n_samples: int,
@@ -130,8 +130,8 @@ def render_image(field: torch.nn.Module,
     """Deterministic chunked rendering of many rays (evaluation): color [P, 3], opacity [P]."""
     colors, opac = [], []
     for i in range(0, origins.shape[0], chunk):
-        out = render_rays(field, origins[i:i + chunk], dirs[i:i + chunk], n_samples,
-                          n_importance, background, generator=None)
+        out = render_volume_rays(field, origins[i:i + chunk], dirs[i:i + chunk], n_samples,
+                                 n_importance, background, generator=None)
         colors.append(out["color"])
         opac.append(out["opacity"])
     return {"color": torch.cat(colors), "opacity": torch.cat(opac)}
