@@ -20,7 +20,6 @@ import torch
 from torch import nn
 
 from shells.fields.network import NORMAL_EPS, ShellField
-from shells.fields.neus import neus_alpha  # noqa: F401  (re-exported: one formula, both backends)
 
 
 @dataclass
