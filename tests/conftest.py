@@ -40,6 +40,34 @@ def write_tiny_blender(root: Path, n_train: int = 4, n_test: int = 2, res: int =
     return root
 
 
+def tiny_config(train_iters: int = 4, train_batch: int = 64):
+    """The toy preset shrunk for tests: a 4-level field, short schedules, a 32^3 shell grid."""
+    from shells.config import toy_config
+
+    cfg = toy_config()
+    cfg.field.n_levels, cfg.field.log2_hashmap_size, cfg.field.max_resolution = 4, 12, 64
+    cfg.train.iters, cfg.train.batch_rays = train_iters, train_batch
+    cfg.train.n_samples, cfg.train.n_importance = 16, 8
+    cfg.shell.resolution = 32
+    cfg.finetune.iters, cfg.finetune.batch_rays = 6, 256
+    cfg.finetune.checkpoint_every, cfg.finetune.log_every = 3, 1
+    return cfg
+
+
+def trained_run(root: Path, cfg) -> Path:
+    """root/data (the tiny data set) and root/run: stage 1 trained with ``cfg``, shells extracted."""
+    import torch
+
+    from shells.pipeline import extract_run
+    from shells.training import train
+
+    data = write_tiny_blender(root / "data")
+    run = root / "run"
+    train(data, run, cfg, torch.device("cpu"), progress=False, evaluate_test=False)
+    extract_run(run)
+    return run
+
+
 @pytest.fixture
 def tiny_blender(tmp_path: Path) -> Path:
     return write_tiny_blender(tmp_path / "tiny")

@@ -15,34 +15,18 @@ import torch
 
 from shells.datasets import load_dataset
 from shells.fields.drjit_field import DrJitField
-from shells.pipeline import extract_run
 from shells.render.band import render_band_rays
 from shells.render.frame import render_image, render_rays
 from shells.render.sampler import band_samples
 from shells.run import RunDir, load_field, load_shells, read_run
-from shells.training import train
-from tests.conftest import write_tiny_blender
-
-
-def _config():
-    from shells.config import toy_config
-
-    cfg = toy_config()
-    cfg.field.n_levels, cfg.field.log2_hashmap_size, cfg.field.max_resolution = 4, 12, 64
-    cfg.train.iters, cfg.train.batch_rays, cfg.train.warmup_iters = 40, 256, 5
-    cfg.train.n_samples, cfg.train.n_importance = 16, 8
-    cfg.shell.resolution = 32
-    return cfg
+from tests.conftest import tiny_config, trained_run
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A toy field trained 40 steps on the tiny data set, its shells, a test view's rays."""
-    root = tmp_path_factory.mktemp("band")
-    data = write_tiny_blender(root / "data")
-    run = root / "run"
-    train(data, run, _config(), torch.device("cpu"), progress=False, evaluate_test=False)
-    extract_run(run)
+    run = trained_run(tmp_path_factory.mktemp("band"), tiny_config(train_iters=40,
+                                                                   train_batch=256))
     field, cfg = load_field(run, stage="stage1")
     scene = load_shells(RunDir(run))
     test = load_dataset(read_run(RunDir(run))["data"], "test")

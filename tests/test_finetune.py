@@ -10,35 +10,19 @@ import pytest
 import torch
 
 from shells.cli import finetune_main
-from shells.config import toy_config
 from shells.errors import InputError
 from shells.finetune import finetune
-from shells.pipeline import extract_run
 from shells.run import load_field
-from shells.training import train
+from tests.conftest import tiny_config, trained_run
 
 
 def _tiny_config():
-    cfg = toy_config()
-    cfg.field.n_levels, cfg.field.log2_hashmap_size, cfg.field.max_resolution = 4, 12, 64
-    cfg.train.iters, cfg.train.batch_rays = 4, 64
-    cfg.train.n_samples, cfg.train.n_importance = 16, 8
-    cfg.shell.resolution = 32
-    cfg.finetune.iters, cfg.finetune.batch_rays = 6, 256
-    cfg.finetune.checkpoint_every, cfg.finetune.log_every = 3, 1
-    return cfg
+    return tiny_config()
 
 
 @pytest.fixture(scope="module")
 def stage1_run(tmp_path_factory):
-    from tests.conftest import write_tiny_blender
-
-    root = tmp_path_factory.mktemp("ft")
-    data = write_tiny_blender(root / "data")
-    run = root / "run"
-    train(data, run, _tiny_config(), torch.device("cpu"), progress=False, evaluate_test=False)
-    extract_run(run)
-    return run
+    return trained_run(tmp_path_factory.mktemp("ft"), _tiny_config())
 
 
 def _copy_run(src, dst):
@@ -158,3 +142,79 @@ def test_config_override_of_a_trained_run(stage1_run, tmp_path, capsys):
     assert abs(m4["psnr"] - m["psnr"]) < 1.0  # the same field, box-filtered
     assert render_main([str(run), "--config", str(ft_cfg), "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_one_loop_for_both_stages(stage1_run, tmp_path):
+    """Stage 1 and stage 2 log the same fields; stage 2's schedule comes from its config
+    (warm-up, final factor); the summaries mark finished stages; stats.json has one timing key."""
+    from shells.loop import lr_factor
+    from shells.run import RunDir, read_log
+
+    run = _copy_run(stage1_run, tmp_path / "run")
+    cfg_file = tmp_path / "ft.json"
+    cfg_file.write_text(json.dumps({"finetune": {"warmup_iters": 2, "lr_final_factor": 0.5}}))
+    finetune(run, progress=False, config=cfg_file, device="cpu")
+    r = RunDir(run)
+    s1, s2 = read_log(r.log("stage1")), read_log(r.log("stage2"))
+    common = {"step", "loss", "psnr", "rays_per_s", "elapsed_s"}
+    assert common <= set(s1[-1]) and common <= set(s2[-1])
+    ck = torch.load(r.checkpoint("stage2"), weights_only=False)
+    fc = ck["config"]["finetune"]
+    assert (fc["warmup_iters"], fc["lr_final_factor"]) == (2, 0.5)
+    for g in ck["optimizer"]["param_groups"]:  # the lr of the last step (step 5 of 6)
+        assert g["lr"] == pytest.approx(g["base_lr"] * lr_factor(5, 6, 2, 0.5))
+    assert lr_factor(5, 6, 2, 0.5) != pytest.approx(lr_factor(5, 6, 0, 0.1))  # not the default
+    summary = json.loads(r.summary("stage2").read_text())
+    assert summary["finished"] and summary["step"] == 6 and summary["rays_per_s"] > 0
+    stats = json.loads((r.shells / "stats.json").read_text())
+    assert "timings" not in stats and {"sample_grid", "evolve", "total"} <= set(stats["timings_s"])
+
+
+def test_run_layer_messages_and_loaded_stage(stage1_run, tmp_path, capsys):
+    """load_field(stage2) without stage 2 names shells-finetune; metrics.json says which
+    checkpoint was loaded, not 'latest'."""
+    from shells.cli import render_main
+
+    run = _copy_run(stage1_run, tmp_path / "run")
+    with pytest.raises(InputError, match="shells-finetune"):
+        load_field(run, stage="stage2")
+    out = tmp_path / "band"
+    assert render_main([str(run), "--out", str(out)]) == 0  # --stage latest (the default)
+    assert json.loads((out / "metrics.json").read_text())["stage"] == "stage1"
+    capsys.readouterr()  # the progress bars of that render
+    assert render_main([str(run), "--stage", "stage2", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "shells-finetune" in err[-1] and not (tmp_path / "x").exists()
+
+
+def test_stage2_device_and_variant_agree():
+    """The Mitsuba variant follows the torch device; a variant for another device is an error."""
+    from shells.device import mitsuba_variant
+
+    assert mitsuba_variant(None, "cpu") == "llvm_ad_rgb"
+    assert mitsuba_variant("llvm_ad_rgb", torch.device("cpu")) == "llvm_ad_rgb"
+    with pytest.raises(InputError, match="render.variant"):
+        mitsuba_variant("cuda_ad_rgb", "cpu")
+    mitsuba_variant("llvm_ad_rgb")
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_finetune_on_cuda_tracks_cpu(stage1_run, tmp_path):
+    """Stage 2 on CUDA (cuda_ad_rgb ray casting, CUDA field and generators): it runs, and the
+    losses follow the CPU run's (different random streams on another device: not bit-exact)."""
+    from shells.device import mitsuba_variant
+    from shells.run import RunDir, read_log
+
+    try:
+        cpu = _copy_run(stage1_run, tmp_path / "cpu")
+        finetune(cpu, progress=False, device="cpu")
+        gpu = _copy_run(stage1_run, tmp_path / "gpu")
+        finetune(gpu, progress=False, device="cuda")
+        a, b = read_log(RunDir(cpu).log("stage2")), read_log(RunDir(gpu).log("stage2"))
+        assert [r["step"] for r in b] == [1, 2, 3, 4, 5, 6]
+        assert abs(a[-1]["psnr"] - b[-1]["psnr"]) < 3.0 and b[-1]["spp"] > 0
+        f, _ = load_field(gpu, stage="stage2")
+        assert all(torch.isfinite(p).all() for p in f.parameters())
+    finally:
+        mitsuba_variant("llvm_ad_rgb")

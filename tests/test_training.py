@@ -136,3 +136,37 @@ def test_supersampled_training_pixels(tiny_blender, tmp_path, capsys):
                        "--config", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "square" in err[0] and not (tmp_path / "r2").exists()
+
+
+def test_config_ranges_are_checked_when_loaded(tmp_path, capsys):
+    """Out-of-range values fail when the file (or flag) is read, in one line naming the key;
+    the config is left as it was. Runs stored before data.background read their background."""
+    from shells.config import Config, load_config
+    from shells.errors import InputError
+
+    cases = [({"render": {"spp": 3}}, "render.spp", "square"),
+             ({"train": {"pixel_samples": 8}}, "train.pixel_samples", "square"),
+             ({"render": {"dp_max": 0}}, "render.dp_max", ">= 1"),
+             ({"train": {"batch_rays": 0}}, "train.batch_rays", ">= 1"),
+             ({"shell": {"resolution": 4}}, "shell.resolution", ">= 8"),
+             ({"data": {"background": [1, 1]}}, "data.background", "three values"),
+             ({"field": {"min_kernel": 0.2}}, "field.init_kernel", "min_kernel"),
+             ({"render": {"variant": 5}}, "render.variant", "str or null")]
+    for data, key, why in cases:
+        cfg = Config()
+        with pytest.raises(InputError, match=why) as exc:
+            cfg.update(data, "x.json")
+        assert key in str(exc.value) and "\n" not in str(exc.value)
+        assert cfg.to_dict() == Config().to_dict()  # unchanged
+    f = tmp_path / "c.json"
+    f.write_text('{"finetune": {"iters": 0}}')
+    with pytest.raises(InputError, match="finetune.iters"):
+        load_config(f)
+    old = Config().to_dict()
+    del old["data"]
+    old["train"]["background"] = [0.0, 0.0, 0.0]
+    old["render"]["background"] = [0.0, 0.0, 0.0]
+    assert Config.from_dict(old).data.background == (0.0, 0.0, 0.0)
+    assert train_main(["--data", str(tmp_path), "--out", str(tmp_path / "r"), "--iters", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--iters" in err[0] and "train.iters" in err[0]
