@@ -62,14 +62,16 @@ def later_stage_configs(out: Path) -> dict[str, Path]:
 def variant(base: Path, path: Path) -> Path:
     """A run directory sharing base's stage-1 checkpoint (its own shells and stage 2)."""
     path.mkdir(parents=True, exist_ok=True)
-    for name in ("checkpoint.pt", "run.json", "config.json", "train_summary.json"):
-        if not (path / name).exists():
-            os.symlink((base / name).resolve(), path / name)
+    b, p = RunDir(base), RunDir(path)
+    for src, dst in ((b.checkpoint(), p.checkpoint()), (b.run_json, p.run_json),
+                     (b.config, p.config), (b.summary(), p.summary())):
+        if not dst.exists():
+            os.symlink(src.resolve(), dst)
     return path
 
 
 def shells(run: Path, fixed: float | None, config: Path) -> dict:
-    stats = run / "shells" / "stats.json"
+    stats = RunDir(run).shells / "stats.json"
     if not stats.is_file():
         extract_run(run, fixed_width=fixed, config=config)
     return json.loads(stats.read_text())

@@ -19,6 +19,8 @@ import imageio.v3 as iio
 import numpy as np
 from scipy import ndimage
 
+from shells.run import RunDir, read_run
+
 
 def split_errors(data: Path, render: Path) -> dict[str, dict[str, float]]:
     frames = json.loads((data / "transforms_test.json").read_text())["frames"]
@@ -48,7 +50,7 @@ def main(argv=None) -> int:
     p.add_argument("run", help="run directory (its run.json names the data set)")
     p.add_argument("renders", nargs="+", help="render directories (r_###.png of the test split)")
     args = p.parse_args(argv)
-    data = Path(json.loads((Path(args.run) / "run.json").read_text())["data"])
+    data = Path(read_run(RunDir(args.run))["data"])
     print(f"{'render':<48} {'class':<11} {'SSE':>8} {'pixels':>7} {'MSE':>8}")
     for r in args.renders:
         for k, v in split_errors(data, Path(r)).items():

@@ -26,6 +26,7 @@ import numpy as np
 import trimesh
 
 from shells.fields.network import fibonacci_sphere
+from shells.run import RunDir, read_run
 
 from report import emit_json
 
@@ -43,8 +44,9 @@ def first_hit_radius(mesh: trimesh.Trimesh, dirs: np.ndarray) -> np.ndarray:  # 
 
 
 def shell_radii(run_dir: str | Path) -> dict:
-    run = Path(run_dir)
-    meta = json.loads((run / "run.json").read_text())
+    rd = RunDir(run_dir)
+    run = rd.root
+    meta = read_run(rd)
     scene = json.loads((Path(meta["data"]) / "transforms_train.json").read_text()).get("scene", {})
     radius = {"sphere": scene.get("radius"),
               "core-fuzz": scene.get("core_radius")}.get(scene.get("name"))
@@ -53,7 +55,7 @@ def shell_radii(run_dir: str | Path) -> dict:
                  "n_directions": len(dirs)}
     pct = [5, 25, 50, 75, 95]
     for name in ("outer", "inner"):
-        path = run / "shells" / f"{name}.ply"
+        path = rd.outer if name == "outer" else rd.inner
         if not path.is_file() or path.stat().st_size == 0:
             out[name] = None
             continue
