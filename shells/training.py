@@ -1,4 +1,4 @@
-"""Stage 1: the field trained by full-ray NeuS volume rendering, with its losses (§3.1-3.2, §3.5).
+"""Stage 1: the field trained by full-ray NeuS volume rendering and its losses (§3.1-3.2, §3.5).
 
 Loss (Eq. 8-12): L = L1 colour + w_eik (|grad f| - 1)^2 + w_smooth |log s(x) - log s(x + n)|
 + w_normal |n(x) - grad f / |grad f||, n ~ N(0, eps^2), grad f by central differences.

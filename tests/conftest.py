@@ -55,7 +55,8 @@ def tiny_config(train_iters: int = 4, train_batch: int = 64):
 
 
 def trained_run(root: Path, cfg) -> Path:
-    """root/data (the tiny data set) and root/run: stage 1 trained with ``cfg``, shells extracted."""
+    """root/data (the tiny data set) and root/run: stage 1 trained with ``cfg``, shells
+    extracted."""
     import torch
 
     from shells.pipeline import extract_run

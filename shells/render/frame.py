@@ -34,9 +34,7 @@ from shells.errors import InputError
 from shells.render.occupancy import render_occupancy
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import place_packed
-from shells.render.shading import composite_packed, end_colour, shade_samples
-
-WHITE = (1.0, 1.0, 1.0)
+from shells.render.shading import WHITE, composite_packed, end_colour, shade_samples
 
 MODES = ("band", "full", "occupancy")
 
@@ -48,7 +46,7 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
                 mode: str = "band",
                 scene: ShellScene | None = None,  # needed in band mode
                 aabb: Any = None,  # [2, 3] scene box, needed in full and occupancy modes
-                background: tuple[float, float, float] = WHITE,  # the data set's (data.background)
+                background: tuple[float, float, float] = WHITE,  # data.background
                 ) -> tuple[Any, Any]:  # colour mi.Color3f [R], samples per ray mi.UInt32 [R]
     """Colour of each ray over the background, and how many field samples it took."""
     o = to_point3f(origins, mi.Point3f)

@@ -28,8 +28,9 @@ Ray marching (`render_occupancy`)
     without the per-axis bookkeeping). Rays advance in rounds: each round marches every live ray
     until it has collected K samples (or left the box), evaluates the field at all collected
     samples at once, computes the NeuS alpha with the shared formula
-    (``shells.fields.neus.neus_alpha`` through ``shading.shade_samples``, cos = d . n, section dt)
-    and composites them front to back with ``shading.composite_packed``. Partial results chain exactly:
+    (``shells.fields.neus.neus_alpha`` through ``shading.shade_samples``, cos = d . n, section
+    dt) and composites them front to back with ``shading.composite_packed``. Partial results
+    chain exactly:
 
         C += T * C_round,  T *= 1 - O_round        (C_round, O_round over a black background)
 
@@ -64,7 +65,7 @@ from shells.errors import InputError
 from shells.levelset.grid import check_aabb
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import PackedSamples
-from shells.render.shading import composite_packed, shade_samples
+from shells.render.shading import WHITE, composite_packed, shade_samples
 
 GRID_EVAL_CHUNK = 1 << 21  # points per field evaluation while building the grid
 MAX_ROUND_GROWTH = 8  # samples per ray and round grow up to 8 x cfg.occ_chunk as rays die
@@ -214,7 +215,7 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
                      dirs: Any,  # [R, 3] unit directions
                      cfg: RenderConfig,
                      aabb: Any,  # [2, 3] scene box
-                     background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+                     background: tuple[float, float, float] = WHITE,  # the data set's
                      grid: OccupancyGrid | None = None,  # default: occupancy_grid(field, ...)
                      ) -> tuple[Any, Any, Any]:
     """Colour mi.Color3f [R] over the background, opacity mi.Float [R], samples mi.UInt32 [R]."""

@@ -16,6 +16,8 @@ import mitsuba as mi
 from shells.fields.neus import neus_alpha
 from shells.render.sampler import PackedSamples
 
+WHITE = (1.0, 1.0, 1.0)  # the default background (config data.background)
+
 
 @dr.syntax
 def composite_packed(alpha: Any,  # mi.Float [M] packed per ray, front to back

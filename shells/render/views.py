@@ -28,7 +28,8 @@ from tqdm import tqdm
 from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.metrics import psnr, ssim
-from shells.render.frame import WHITE, render_image
+from shells.render.frame import render_image
+from shells.render.shading import WHITE
 from shells.render.raycast import ShellScene
 
 _HEAT = np.array([[0, 0, 0], [80, 20, 120], [220, 50, 60], [250, 160, 20], [255, 255, 160]],
