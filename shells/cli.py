@@ -6,23 +6,56 @@ Every command turns an `InputError` into one line on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 from typing import Callable, Sequence
 
-from shells.errors import InputError
+from shells import distributed
+from shells.errors import InputError, Interrupted
 
 
 def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.ArgumentParser,
          argv: Sequence[str] | None) -> int:
     args = parser.parse_args(argv)
+    previous = signal.signal(signal.SIGTERM, _terminate)  # torchrun stops workers by SIGTERM
+    status = 1
     try:
-        return int(fn(args) or 0)
+        status = int(fn(args) or 0)
     except InputError as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
-        return 2
+        status = 2
+    except Interrupted as exc:
+        print(f"{parser.prog}: {exc}", file=sys.stderr)
+        status = exc.status
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
-        return 130
+        status = 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        if distributed.launched_world() > 1:
+            _leave_job(status)  # does not return
+    return status
+
+
+def _leave_job(status: int) -> None:
+    """End a torchrun worker: leave the process group with the others, flush, and exit without
+    the interpreter's teardown. Its files are all written and closed by then; in about one run
+    in ten, tearing down Dr.Jit's and gloo's threads together aborted a worker
+    ("terminate called without an active exception"), which torchrun reports as a failure."""
+    try:
+        distributed.shutdown()
+    except Exception as exc:  # the other ranks are gone: nothing left to wait for
+        print(f"shells: leaving the process group: {exc}", file=sys.stderr)
+        status = status or 1
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
+
+
+def _terminate(signum: int, frame: object) -> None:
+    """SIGTERM as Ctrl-C: files being written are removed, checkpoints stay intact."""
+    raise KeyboardInterrupt
 
 
 # --------------------------------------------------------------------------------------------
@@ -99,7 +132,7 @@ def _train(args: argparse.Namespace) -> int:
         raise InputError(f"--downscale {args.downscale}: must be at least 1")
     summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
                     resume=args.resume, iters=args.iters)
-    if "test" in summary:
+    if "test" in summary and distributed.launched_rank() == 0:
         print(f"test PSNR {summary['test']['psnr']:.2f} dB over {summary['test']['n_views']} "
               f"views; checkpoint {args.out}/checkpoint.pt")
     return 0
@@ -169,7 +202,8 @@ def _finetune(args: argparse.Namespace) -> int:
 
     summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
                        device=args.device)
-    print(f"stage 2 done ({summary['step']} steps); checkpoint {args.run}/finetune.pt")
+    if distributed.launched_rank() == 0:
+        print(f"stage 2 done ({summary['step']} steps); checkpoint {args.run}/finetune.pt")
     return 0
 
 

@@ -62,6 +62,9 @@ class TrainConfig:
     pixel_samples: int = 1  # rays per training pixel, k x k jittered sub-pixel positions whose
     # colours are averaged before the loss (box-filtered pixels; 1 = one ray at the centre);
     # a step takes batch_rays / pixel_samples pixels
+    shards: int = 1  # a step's rays are drawn in this many shards, each from its own random
+    # stream; N data-parallel processes take shards r, r + N, ... (N must divide it); the
+    # default becomes the number of processes when a run starts under torchrun
     n_samples: int = 64  # uniform samples per ray inside the scene box
     n_importance: int = 64  # extra samples per ray drawn from the coarse weights (0 = off)
     lr: float = 1e-2  # Adam learning rate for hash-grid tables
@@ -136,6 +139,7 @@ class FinetuneConfig:
     iters: int = 2000  # optimisation steps
     batch_rays: int = 4096  # rays per step
     pixel_samples: int = 1  # rays per training pixel (k x k jittered, averaged), as in stage 1
+    shards: int = 1  # ray shards per step, as in stage 1
     lr: float = 1e-3  # Adam learning rate for hash tables
     lr_mlp: float = 1e-4  # Adam learning rate for MLP weights
     warmup_iters: int = 0  # linear learning-rate warm-up
@@ -276,8 +280,13 @@ _RULES = [_rule(k, *r) for k, r in [
     *[(f"{s}.{k}", _at_least(1)) for s in ("train", "finetune")
       for k in ("iters", "batch_rays", "checkpoint_every", "log_every")],
     *[(f"{s}.pixel_samples", _SQUARE) for s in ("train", "finetune")],
-    *[(f"{s}.batch_rays", (lambda v, c, s=s: v >= getattr(c, s).pixel_samples,
-                           f"must be >= {s}.pixel_samples (rays of one pixel)"))
+    *[(f"{s}.shards", _at_least(1)) for s in ("train", "finetune")],
+    *[(f"{s}.batch_rays", (lambda v, c, s=s: v % getattr(c, s).shards == 0,
+                           f"must be a multiple of {s}.shards"))
+      for s in ("train", "finetune")],
+    *[(f"{s}.batch_rays", (lambda v, c, s=s: v // getattr(c, s).shards
+                           >= getattr(c, s).pixel_samples,
+                           f"must be >= {s}.pixel_samples x {s}.shards (a pixel's rays per shard)"))
       for s in ("train", "finetune")],
     *[(f"{s}.{k}", _positive()) for s in ("train", "finetune") for k in ("lr", "lr_mlp")],
     *[(f"{s}.warmup_iters", _at_least(0)) for s in ("train", "finetune")],

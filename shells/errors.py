@@ -18,6 +18,16 @@ class InputError(ValueError):
     """Bad user input; the message names the file/value and how to fix it."""
 
 
+class Interrupted(RuntimeError):
+    """A run stopped before its end (Ctrl-C, SIGTERM, a rank of a distributed job lost): the
+    message says what is intact and how to continue. The CLI prints it and exits with
+    ``status`` (130 for a signal, 1 for a lost rank)."""
+
+    def __init__(self, message: str, status: int = 1) -> None:
+        super().__init__(message)
+        self.status = status
+
+
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     """Write a file through a temporary sibling and rename it into place.
 

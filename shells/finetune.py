@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from shells import distributed
 from shells.config import FinetuneConfig, RenderConfig, override_config
 from shells.datasets import Dataset, load_dataset
 from shells.device import mitsuba_variant, torch_device
@@ -29,8 +30,9 @@ from shells.run import RunDir, field_from_checkpoint, load_shells, read_checkpoi
 def stage2_step(field: ShellField, scene: ShellScene, data: Dataset, pixels: torch.Tensor,
                 fc: FinetuneConfig, rc: RenderConfig, background: torch.Tensor,
                 gen: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
-    """L1 colour loss of one random batch of pixels rendered in the band, and its logs."""
-    idx, o, d = data.sample_pixel_rays(fc.batch_rays, fc.pixel_samples, gen)
+    """L1 colour loss of one shard of a step (``batch_rays / shards`` random rays drawn with
+    ``gen``) rendered in the band, and its logs."""
+    idx, o, d = data.sample_pixel_rays(fc.batch_rays // fc.shards, fc.pixel_samples, gen)
     out = render_band_rays(field, scene, o, d, rc, background)
     pred = out["color"].reshape(len(idx), fc.pixel_samples, 3).mean(1)  # box filter
     target = pixels[idx]
@@ -54,7 +56,9 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
     meta = read_run(run)
     if not run.outer.is_file():
         raise InputError(f"{run.outer}: no shells; run shells-extract {run.root} first")
-    dev = device if isinstance(device, torch.device) else torch_device(device)
+    dev = distributed.rank_device(device if isinstance(device, torch.device)
+                                  else torch_device(device))
+    w = distributed.world(dev)
     ckpt = None
     if resume:
         ckpt = read_checkpoint(run, "stage2")
@@ -68,6 +72,8 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
     override_config(cfg, config, ("finetune", "render"), "shells-finetune")
     if iters is not None:
         cfg.update({"finetune": {"iters": iters}}, "--iters")
+    if ckpt is None and w.size > 1 and cfg.finetune.shards == 1:  # one shard per process
+        cfg.update({"finetune": {"shards": w.size}}, f"torchrun ({w.size} processes)")
     fc, rc = cfg.finetune, cfg.render
     scene = load_shells(run, mitsuba_variant(rc.variant, dev))
     data = load_dataset(meta["data"], "train", downscale=int(meta["downscale"]),
@@ -80,7 +86,7 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
                                                gen),
                        run.checkpoint("stage2"), run.log("stage2"), dev, resume=ckpt,
                        stop_at=stop_at, progress=progress)
-    if summary["finished"]:  # the summary marks a finished stage 2
+    if summary["finished"] and w.main:  # the summary marks a finished stage 2
         write_json(run.summary("stage2"), summary)
     return summary
 

@@ -1,26 +1,36 @@
 """The optimisation loop every training stage runs (stage 1, stage 2, and any later stage).
 
-A stage supplies its field, an Adam optimiser (`make_optimizer`), its schedule and a step
-function ``step(gen) -> (loss, logs)`` that draws a batch with the step's generator and returns
-the loss tensor and scalar logs (``loss`` and ``psnr`` at least). The loop owns the rest, the
-same way for every stage:
+A stage supplies its field, an Adam optimiser (`make_optimizer`), its schedule and a shard loss
+``shard_loss(gen) -> (loss, logs)`` that draws ``batch_rays / shards`` rays with the generator
+it is given and returns their loss tensor and scalar logs (``loss`` and ``psnr`` at least). The
+loop owns the rest, the same way for every stage:
 
 * learning rate: linear warm-up over ``warmup`` steps, then cosine decay to ``final`` x the base
   rate of each parameter group (`lr_factor`);
-* randomness: step k draws from a generator seeded with (seed, k) on the training device, so a
-  run killed and resumed from a checkpoint retraces the uninterrupted run exactly;
-* exact resume: from a checkpoint dict (field, optimiser, step); log records past it dropped;
+* randomness: a step's rays come in ``shards`` shards; shard k of step t draws from a generator
+  seeded with (seed, t, k) on the training device, so a run killed and resumed from a
+  checkpoint retraces the uninterrupted run exactly, and the rays of a step do not depend on
+  how many processes share them;
+* data parallel (torchrun, `shells.distributed`): rank r of N computes shards r, r + N, ...;
+  DistributedDataParallel averages the gradients, so N ranks and one process give the same
+  step up to float rounding (one process computes the mean of the shard losses itself);
+  rank 0 alone shows progress and writes logs and checkpoints;
+* exact resume: from a checkpoint dict (field, optimiser, step), with any N dividing
+  ``shards``; log records past it dropped;
 * tqdm progress (loss, psnr, rays/s), a JSON-lines record every ``log_every`` steps and at the
   end, an atomic checkpoint every ``checkpoint_every`` steps and at the end;
 * the summary: steps, seconds, rays/s and the last record.
 
-A step whose loss has no gradient (stage 2: every ray of the batch missed the band) changes
-nothing but is logged and counted.
+A step whose loss has no gradient on any rank (stage 2: every ray of the batch missed the band)
+changes nothing but is logged and counted.
 """
 
 from __future__ import annotations
 
+import contextlib
+import inspect
 import math
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,13 +39,14 @@ from typing import Any, Callable
 import torch
 from tqdm.auto import tqdm
 
+from shells import distributed
 from shells.config import Config
-from shells.errors import InputError
+from shells.errors import InputError, Interrupted
 from shells.fields.hashgrid import HashGrid
 from shells.fields.network import ShellField
 from shells.run import append_log, save_checkpoint, truncate_log
 
-StepFn = Callable[[torch.Generator], tuple[torch.Tensor, dict[str, float]]]
+ShardLoss = Callable[[torch.Generator], tuple[torch.Tensor, dict[str, float]]]
 
 
 @dataclass
@@ -50,13 +61,14 @@ class Schedule:
     rays_per_step: int  # for the rays/s figure
     checkpoint_every: int
     log_every: int
+    shards: int = 1  # the step's rays come in this many independently drawn shards
 
     @classmethod
     def of(cls, name: str, section: Any) -> "Schedule":
         return cls(name=name, iters=section.iters, warmup=section.warmup_iters,
                    final=section.lr_final_factor, seed=section.seed,
                    rays_per_step=section.batch_rays, checkpoint_every=section.checkpoint_every,
-                   log_every=section.log_every)
+                   log_every=section.log_every, shards=section.shards)
 
 
 def make_optimizer(field: ShellField, lr_grid: float, lr_mlp: float) -> torch.optim.Adam:
@@ -77,16 +89,42 @@ def lr_factor(step: int, iters: int, warmup: int, final: float) -> float:
     return final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * p))
 
 
-def step_generator(seed: int, step: int, device: torch.device) -> torch.Generator:
-    return torch.Generator(device=device).manual_seed(seed * 1_000_003 + step)
+def step_generator(seed: int, step: int, device: torch.device,
+                   shard: int = 0) -> torch.Generator:
+    """The generator of shard ``shard`` of step ``step`` (shard 0: the stream of runs made
+    before shards existed)."""
+    return torch.Generator(device=device).manual_seed(seed * 1_000_003 + step + shard * 2 ** 40)
 
 
 def psnr_of(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-10))
 
 
+def join(name: str, shards: int, device: torch.device) -> distributed.World:
+    """This process's place in the job (`shells.distributed.world`), checked against the
+    stage's ray shards: N processes need N to divide them."""
+    w = distributed.world(device)
+    if shards % w.size:
+        raise InputError(f"{name}: {shards} ray shards per step cannot be shared by {w.size} "
+                         f"processes; run a number of processes that divides it")
+    return w
+
+
+class _Shard(torch.nn.Module):
+    """One shard's loss as a module: what DistributedDataParallel wraps (its forward is the
+    shard loss; the field's parameters are its parameters)."""
+
+    def __init__(self, field: ShellField, shard_loss: ShardLoss) -> None:
+        super().__init__()
+        self.field = field
+        self.shard_loss = shard_loss
+
+    def forward(self, gen: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
+        return self.shard_loss(gen)
+
+
 def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: Schedule,
-             step: StepFn,
+             shard_loss: ShardLoss,
              checkpoint: Path,  # where the stage's checkpoint goes
              log: Path,  # the stage's JSON-lines log
              device: torch.device,
@@ -95,6 +133,7 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
              progress: bool = True) -> dict[str, Any]:
     """Run steps [start, end) of the schedule; returns the summary (step, seconds, rays_per_s,
     last, finished). ``cfg`` is what the checkpoints store with the field."""
+    w = join(sched.name, sched.shards, device)
     start = 0
     if resume is not None:
         start = int(resume["step"])
@@ -103,33 +142,96 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
                              f"--iters to continue")
         field.load_state_dict(resume["field"])
         opt.load_state_dict(resume["optimizer"])
-        truncate_log(log, start)
+        if w.main:
+            truncate_log(log, start)
+    mine = list(range(w.rank, sched.shards, w.size))  # this rank's shards
+    shard = _Shard(field, shard_loss)
+    model: torch.nn.Module = shard
+    if w.size > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        # the field's buffers (box, grid constants) are equal on every rank: no sync per step
+        params = inspect.signature(DistributedDataParallel.__init__).parameters
+        quiet = ({"forward_sync_buffers": False} if "forward_sync_buffers" in params
+                 else {"broadcast_buffers": False})
+        model = DistributedDataParallel(
+            shard, device_ids=[device.index] if device.type == "cuda" else None, **quiet)
     end = sched.iters if stop_at is None else min(stop_at, sched.iters)
-    bar = tqdm(total=sched.iters, initial=start, disable=not progress, desc=sched.name,
-               unit="step", dynamic_ncols=True)
-    t0, last, rays_s = time.perf_counter(), None, 0.0
+    bar = tqdm(total=sched.iters, initial=start, disable=not (progress and w.main),
+               desc=sched.name, unit="step", dynamic_ncols=True)
+    t0, last, rays_s, saved = time.perf_counter(), None, 0.0, start
     field.train()
-    for k in range(start, end):
-        gen = step_generator(sched.seed, k, device)
-        factor = lr_factor(k, sched.iters, sched.warmup, sched.final)
-        for g in opt.param_groups:
-            g["lr"] = g["base_lr"] * factor
-        opt.zero_grad(set_to_none=True)
-        loss, last = step(gen)
-        if loss.requires_grad:
-            loss.backward()
-            opt.step()
-        done = k + 1
-        elapsed = time.perf_counter() - t0
-        rays_s = sched.rays_per_step * (done - start) / elapsed
-        bar.update(1)
-        bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
-                        rays_s=f"{rays_s:.0f}")
-        if done % sched.log_every == 0 or done == end:
-            append_log(log, {"step": done, **last, "rays_per_s": rays_s, "elapsed_s": elapsed})
-        if done % sched.checkpoint_every == 0 or done == end:
-            save_checkpoint(checkpoint, field, opt, done, cfg)
-    bar.close()
+    k = start
+    try:
+        for k in range(start, end):
+            gens = [step_generator(sched.seed, k, device, shard) for shard in mine]
+            factor = lr_factor(k, sched.iters, sched.warmup, sched.final)
+            for g in opt.param_groups:
+                g["lr"] = g["base_lr"] * factor
+            opt.zero_grad(set_to_none=True)
+            last, any_grad = _accumulate(model, gens, field, w.size > 1)
+            if distributed.any_rank(any_grad, device):
+                opt.step()
+            last = distributed.mean_of(last, device)
+            done = k + 1
+            elapsed = time.perf_counter() - t0
+            rays_s = sched.rays_per_step * (done - start) / elapsed
+            bar.update(1)
+            bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
+                            rays_s=f"{rays_s:.0f}")
+            if w.main and (done % sched.log_every == 0 or done == end):
+                append_log(log, {"step": done, **last, "rays_per_s": rays_s,
+                                 "elapsed_s": elapsed})
+            if done % sched.checkpoint_every == 0 or done == end:
+                if w.main:
+                    save_checkpoint(checkpoint, field, opt, done, cfg)
+                saved = done
+    except KeyboardInterrupt:
+        raise Interrupted(f"{sched.name} interrupted at step {k + 1}; {_intact(checkpoint, saved)}",
+                          status=130) from None
+    except RuntimeError as exc:
+        if w.size == 1:
+            raise
+        why = re.sub(r"^\[[^\]]*\]\s*", "", str(exc).splitlines()[0] if str(exc) else "")
+        why = why.split(". ")[0][:80] or type(exc).__name__
+        raise Interrupted(f"{sched.name}: rank {w.rank} of {w.size} lost the other processes at "
+                          f"step {k + 1} ({why}); {_intact(checkpoint, saved)}") from None
+    finally:
+        bar.close()
     field.eval()
     return {"step": end, "seconds": time.perf_counter() - t0, "rays_per_s": rays_s,
             "last": last, "finished": end == sched.iters}
+
+
+def _accumulate(model: torch.nn.Module, gens: list[torch.Generator], field: ShellField,
+                ddp: bool) -> tuple[dict[str, float], bool]:
+    """Gradient of the mean loss of this rank's shards, one shard at a time (each shard's loss
+    scaled by 1 / shards-per-rank and back-propagated at once: the sum in the gradients is the
+    same, term for term, as DistributedDataParallel's sum over ranks). Returns the mean logs and
+    whether any shard had a gradient.
+
+    Under DDP every shard back-propagates (a shard without gradient adds zeros) so that all
+    ranks take part in the gradient all-reduce; only the last shard synchronises."""
+    logs: list[dict[str, float]] = []
+    any_grad = False
+    for i, gen in enumerate(gens):
+        last = i == len(gens) - 1
+        sync = model.no_sync() if ddp and not last else contextlib.nullcontext()
+        with sync:
+            loss, rec = model(gen)
+            logs.append(rec)
+            any_grad |= loss.requires_grad
+            if not loss.requires_grad:
+                if not ddp:
+                    continue
+                loss = loss + sum(p.reshape(-1)[0] * 0.0 for p in field.parameters())
+            (loss if len(gens) == 1 else loss / len(gens)).backward()
+    if len(logs) == 1:
+        return logs[0], any_grad
+    return {k: sum(r[k] for r in logs) / len(logs) for k in logs[0]}, any_grad
+
+
+def _intact(checkpoint: Path, step: int) -> str:
+    if step == 0:
+        return "no checkpoint was written yet; start again"
+    return f"the checkpoint of step {step} ({checkpoint}) is intact; continue with --resume"

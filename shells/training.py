@@ -15,11 +15,12 @@ from typing import Any
 
 import torch
 
+from shells import distributed
 from shells.config import Config, TrainConfig
 from shells.datasets import Dataset, load_dataset
 from shells.errors import InputError, write_json
 from shells.fields.network import ShellField
-from shells.loop import Schedule, make_optimizer, optimise, psnr_of
+from shells.loop import Schedule, join, make_optimizer, optimise, psnr_of
 from shells.metrics import psnr
 from shells.render.volume import render_volume_image, render_volume_rays
 from shells.run import RunDir, read_checkpoint, read_run, write_run
@@ -68,14 +69,15 @@ def reg_points(field: ShellField, ray_points: torch.Tensor, n: int,
 def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: TrainConfig,
                 background: torch.Tensor, gen: torch.Generator,
                 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Loss of one random batch of pixels (drawn with ``gen``) and its scalar logs."""
+    """Loss of one shard of a step (``batch_rays / shards`` random rays drawn with ``gen``) and
+    its scalar logs."""
     spp = tc.pixel_samples
-    idx, o, d = data.sample_pixel_rays(tc.batch_rays, spp, gen)
+    idx, o, d = data.sample_pixel_rays(tc.batch_rays // tc.shards, spp, gen)
     target = pixels[idx]
     out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, background, gen)
     pred = out["color"].reshape(len(idx), spp, 3).mean(1)  # box filter
     color = (pred - target).abs().mean()
-    reg = regularisers(field, reg_points(field, out["points"], REG_POINTS, gen),
+    reg = regularisers(field, reg_points(field, out["points"], REG_POINTS // tc.shards, gen),
                        tc.fd_eps, tc.smooth_eps, gen)
     loss = (color + tc.eikonal_weight * reg["eikonal"] + tc.kernel_smooth_weight * reg["smooth"]
             + tc.normal_weight * reg["normal"])
@@ -127,11 +129,16 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
                          f"to continue it or choose another --out")
     if iters is not None:
         cfg.update({"train": {"iters": iters}}, "--iters")
+    device = distributed.rank_device(device)
+    w = distributed.world(device)
+    if ckpt is None and w.size > 1 and cfg.train.shards == 1:  # one shard per process
+        cfg.update({"train": {"shards": w.size}}, f"torchrun ({w.size} processes)")
     tc = cfg.train
+    join("stage 1", tc.shards, device)  # before anything is written
     data = load_dataset(data_dir, "train", downscale=downscale, background=cfg.data.background)
     field = build_field(cfg, data.aabb, device)
     opt = make_optimizer(field, tc.lr, tc.lr_mlp)
-    if ckpt is None:
+    if ckpt is None and w.main:
         write_run(run, data_dir, downscale, str(device), cfg)
     pixels = data.images.reshape(-1, 3).to(device)
     background = torch.tensor(cfg.data.background, device=device, dtype=torch.float32)
@@ -139,7 +146,7 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
                        lambda gen: stage1_step(field, data, pixels, tc, background, gen),
                        run.checkpoint("stage1"), run.log("stage1"), device, resume=ckpt,
                        stop_at=stop_at, progress=progress)
-    if summary["finished"] and evaluate_test:
+    if summary["finished"] and evaluate_test and w.main:
         try:
             test = load_dataset(data_dir, "test", downscale=downscale,
                                 background=cfg.data.background)

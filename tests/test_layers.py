@@ -6,7 +6,7 @@ dependency). Layers, bottom to top (a module may import only lower layers, or it
 subpackage at the same layer):
 
     0 errors
-    1 config, device, cameras, metrics
+    1 config, device, cameras, metrics, distributed
     2 datasets, scenes/
     3 fields/, levelset/
     4 render/
@@ -28,6 +28,7 @@ RANKS = {
     "shells": 0,  # the package's __init__ (a docstring and the version)
     "shells.errors": 0,
     "shells.config": 1, "shells.device": 1, "shells.cameras": 1, "shells.metrics": 1,
+    "shells.distributed": 1,
     "shells.datasets": 2, "scenes": 2,
     "shells.fields": 3, "shells.levelset": 3,
     "shells.render": 4,
