@@ -214,8 +214,10 @@ def finetune_main(argv: Sequence[str] | None = None) -> int:
 def render_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="shells-render",
-        description="Render a split with narrow-band sampling between the shells (band) or "
-                    "dense sampling along the whole ray (full); writes PNGs and metrics.json.")
+        description="Render a split, or a camera path to a video, with narrow-band sampling "
+                    "between the shells (band) or a baseline; writes PNGs, metrics.json (and "
+                    "video.mp4 for a path). Under torchrun the frames are shared by the "
+                    "processes (frame i on rank i mod N).")
     p.add_argument("run", help="run directory")
     p.add_argument("--split", default="test", help="data split to render (default test)")
     p.add_argument("--mode", choices=["band", "full", "occupancy"], default="band",
@@ -227,7 +229,20 @@ def render_parser() -> argparse.ArgumentParser:
     p.add_argument("--spp", type=int, default=None, metavar="N",
                    help="rays per pixel, N = k*k on a sub-pixel grid, averaged (anti-aliasing; "
                         "default: the run's render.spp, 1 = pixel centres)")
-    p.add_argument("--out", default=None, help="output directory (default RUN/render-MODE)")
+    p.add_argument("--path", default=None, metavar="orbit|spiral|interpolate|FILE",
+                   help="render a camera path instead of a split: an orbit or a spiral around "
+                        "the scene at the training cameras' distance and elevation, an "
+                        "interpolation through the training cameras, or a nerfstudio "
+                        "camera_path.json; writes r_###.png and video.mp4")
+    p.add_argument("--frames", type=int, default=120,
+                   help="frames of an orbit / spiral / interpolate path (default 120)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="video frame rate (default: the camera path file's, else 30)")
+    p.add_argument("--out", default=None,
+                   help="output directory (default RUN/render-MODE, RUN/path-NAME for a path)")
+    p.add_argument("--shard", default=None, metavar="K/N",
+                   help="as one of N independent processes (no torchrun), render frames K, "
+                        "K + N, ...; the last shard to finish merges all into OUT")
     p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest",
                    help="which checkpoint: stage 2 when present (latest, default), or explicit")
     p.add_argument("--config", default=None, metavar="FILE",
@@ -239,9 +254,24 @@ def render_parser() -> argparse.ArgumentParser:
 def _render(args: argparse.Namespace) -> int:
     from shells.pipeline import render_run
 
+    shard = None
+    if args.shard is not None:
+        try:
+            k, n = (int(v) for v in args.shard.split("/"))
+        except ValueError:
+            raise InputError(f"--shard {args.shard}: expected K/N, e.g. 0/4") from None
+        if not (n >= 1 and 0 <= k < n):
+            raise InputError(f"--shard {args.shard}: need 0 <= K < N")
+        shard = (k, n)
     m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
                    height=args.height, out=args.out, stage=args.stage, config=args.config,
-                   spp=args.spp)
+                   spp=args.spp, path=args.path, frames=args.frames, fps=args.fps, shard=shard)
+    if distributed.launched_rank() != 0:
+        return 0
+    if m.get("complete") is False:
+        print(f"shard {m['shard'][0]}/{m['shard'][1]}: {m['views']} frames rendered; "
+              f"{m['out']} is written when all shards are done")
+        return 0
     fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
     print(f"{m['mode']}: PSNR {fmt(m.get('psnr'), '.2f')} dB, SSIM {fmt(m.get('ssim'), '.4f')}, "
           f"{m['samples_per_pixel']:.2f} samples/pixel, {m['ms_per_frame']:.1f} ms/frame "

@@ -85,13 +85,22 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                width: int | None = None, height: int | None = None,
                out: str | Path | None = None, progress: bool = True,
                stage: str = "latest", config: str | Path | None = None,
-               spp: int | None = None) -> dict[str, Any]:
-    """Render every view of ``split`` and write images + metrics.json; returns the metrics.
+               spp: int | None = None, path: str | None = None, frames: int = 120,
+               fps: float | None = None,
+               shard: tuple[int, int] | None = None) -> dict[str, Any]:
+    """Render every view of ``split`` (or of a camera ``path``) and write images +
+    metrics.json; returns the metrics.
 
     ``stage`` picks the checkpoint: 'latest' (stage 2 when present), 'stage1' or 'stage2';
     ``config``: a JSON file with a ``render`` section overriding the run's render settings;
-    ``spp``: rays per pixel (overrides both).
+    ``spp``: rays per pixel (overrides both); ``path``: orbit | spiral | interpolate | a
+    nerfstudio camera_path.json (`shells.camera_paths`), ``frames`` long, written as PNGs and
+    video.mp4 at ``fps`` (default: the file's, else 30). Under torchrun, rank r of N renders
+    views r, r + N, ... and rank 0 writes metrics.json and the video. ``shard`` (K, N): the
+    same share for an independent process (no torchrun); see `_render_shard`.
     """
+    from shells import distributed
+    from shells.camera_paths import camera_path
     from shells.datasets import load_dataset
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
@@ -104,37 +113,135 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     override_config(cfg, config, ("render",), "shells-render")
     if spp is not None:
         cfg.update({"render": {"spp": spp}}, "--spp")
+    if fps is not None and not fps > 0:
+        raise InputError(f"--fps {fps}: must be > 0 frames per second")
     rc, bg = cfg.render, tuple(cfg.data.background)
     variant = mitsuba_variant(rc.variant)
     scene = load_shells(run, variant) if mode == "band" else None
-    data = load_dataset(meta["data"], split, downscale=int(meta["downscale"]), background=bg)
-    cams = resized_cameras(data.cameras, width, height)
-    same_size = (cams.width, cams.height) == (data.cameras.width, data.cameras.height)
+    data = load_dataset(meta["data"], "train" if path else split,
+                        downscale=int(meta["downscale"]), background=bg)
+    if path:
+        cams, file_fps = camera_path(path, data.cameras, data.aabb, frames, width, height)
+        fps = fps or file_fps or 30.0
+        images, same_size = None, False
+        name = Path(path).stem if path not in ("orbit", "spiral", "interpolate") else path
+        default_out = run.root / f"path-{name}"
+    else:
+        cams = resized_cameras(data.cameras, width, height)
+        same_size = (cams.width, cams.height) == (data.cameras.width, data.cameras.height)
+        images = data.images if same_size else None
+        default_out = run.render_dir(mode)
     dj = DrJitField(field)
-
-    out = Path(out) if out is not None else run.render_dir(mode)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    out = Path(out) if out is not None else default_out
+    extra = {
+        "split": None if path else split, "path": path, "variant": variant,
+        "stage": loaded, "out": str(out),
+        "device": "cuda" if variant.startswith("cuda") else "cpu",
+        "background": list(bg), "data": str(meta["data"]),
+        "downscale": int(meta["downscale"]),
+        "protocol": PROTOCOL + ("" if same_size else
+                                "; no reference images at this resolution or camera path: "
+                                "no PSNR / SSIM"),
+        "render_config": dataclasses.asdict(rc),
+        **({"fps": fps} if path else {}),
+    }
+    if shard is not None:
+        if distributed.launched_world() > 1:
+            raise InputError("--shard K/N is for independent processes; under torchrun the "
+                             "ranks share the frames by themselves")
+        return _render_shard(dj, cams, images, rc, mode, scene, data.aabb, progress, bg, out,
+                             shard, extra)
+    w = distributed.world()  # the CPU group (gloo) coordinates; each rank renders on its own
+    tmp = None
+    if w.main:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    tmp = Path(distributed.broadcast_object(str(tmp) if tmp else None))
     try:
-        metrics = render_views(dj, cams, data.images if same_size else None, rc, mode, scene,
-                               data.aabb, tmp, progress, bg)
-        metrics.update({
-            "split": split, "variant": variant, "stage": loaded, "out": str(out),
-            "device": "cuda" if variant.startswith("cuda") else "cpu",
-            "background": list(bg), "data": str(meta["data"]),
-            "downscale": int(meta["downscale"]),
-            "protocol": PROTOCOL + ("" if same_size else
-                                    "; resolution differs from the data set: no metrics"),
-            "render_config": dataclasses.asdict(rc),
-        })
-        write_json(tmp / "metrics.json", metrics)
-        out.mkdir(parents=True, exist_ok=True)
-        names = sorted(p.name for p in tmp.iterdir())
-        for name in [n for n in names if n != "metrics.json"] + ["metrics.json"]:
-            os.replace(tmp / name, out / name)  # metrics.json last: it marks a complete render
+        metrics = render_views(dj, cams, images, rc, mode, scene, data.aabb, tmp, progress, bg,
+                               world=w)
+        distributed.barrier()  # every rank's frames are in tmp
+        metrics.update(extra)
+        if w.main:
+            _finish(tmp, out, metrics)
+        distributed.barrier()
+    finally:
+        if w.main:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return metrics
+
+
+def _finish(tmp: Path, out: Path, metrics: dict[str, Any]) -> None:
+    """Video (for a path) and metrics.json into tmp, then everything moved into out."""
+    from shells.render.views import write_video
+
+    if metrics.get("path"):
+        write_video(sorted(tmp.glob("r_*.png")), tmp / "video.mp4", metrics["fps"])
+    write_json(tmp / "metrics.json", metrics)
+    out.mkdir(parents=True, exist_ok=True)
+    names = sorted(p.name for p in tmp.iterdir())
+    for n in [n for n in names if n != "metrics.json"] + ["metrics.json"]:
+        os.replace(tmp / n, out / n)  # metrics.json last: it marks a complete render
+
+
+def _render_shard(field: Any, cams: Any, images: Any, rc: Any, mode: str, scene: Any,
+                  aabb: Any, progress: bool, bg: tuple[float, float, float], out: Path,
+                  shard: tuple[int, int], extra: dict[str, Any]) -> dict[str, Any]:
+    """Frames K, K + N, ... of an independent process (`shells-render --shard K/N`).
+
+    Each shard renders into its own folder under the hidden OUT/../.OUT.shards/, and marks it
+    done by renaming it to shard-K-of-N; the process that finds all N shards done merges them
+    (heatmaps on one scale, metrics.json, the video) into OUT: the same files a single process
+    writes. Until then OUT does not exist. Returns the merged metrics, or this shard's count.
+    """
+    import numpy as np
+
+    from shells import distributed
+    from shells.errors import read_json
+    from shells.render.views import render_frames, summarise
+
+    k, n = shard
+    stage = out.parent / f".{out.name}.shards"
+    stage.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=stage, prefix=f".shard-{k}-"))
+    try:
+        views, warm, spps = render_frames(field, cams, images, rc, mode, scene, aabb, tmp,
+                                          progress, bg, distributed.World(rank=k, size=n))
+        np.savez_compressed(tmp / "spp.npz", **{str(i): s.numpy() for i, s in spps.items()})
+        write_json(tmp / "record.json", {"views": views, "warm": warm})
+        done = stage / f"shard-{k}-of-{n}"
+        shutil.rmtree(done, ignore_errors=True)  # a re-run of this shard replaces it
+        os.replace(tmp, done)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return metrics
+    parts = [stage / f"shard-{j}-of-{n}" for j in range(n)]
+    if not all(p.is_dir() for p in parts):
+        return {"shard": [k, n], "views": len(views), "complete": False, "out": str(out)}
+    try:  # one merger: the first process to create the lock
+        os.close(os.open(stage / "merge.lock", os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return {"shard": [k, n], "views": len(views), "complete": False, "out": str(out)}
+    merged = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    try:
+        views, warm, spps = [], [], {}
+        for p in parts:
+            rec = read_json(p / "record.json", "shard record")
+            views += rec["views"]
+            warm += rec["warm"]
+            with np.load(p / "spp.npz") as z:
+                spps.update({int(i): torch.from_numpy(z[i]) for i in z.files})
+            for f in p.glob("r_*.png"):
+                shutil.copy2(f, merged / f.name)  # the shards stay until the merge is done
+        metrics = summarise(views, warm, spps, merged, cams, mode, n)
+        metrics.update(extra)
+        _finish(merged, out, metrics)
+        shutil.rmtree(stage, ignore_errors=True)
+    except BaseException:
+        (stage / "merge.lock").unlink(missing_ok=True)  # a later shard run may merge again
+        raise
+    finally:
+        shutil.rmtree(merged, ignore_errors=True)
+    return {**metrics, "complete": True}
 
 
 def demo(out: str | Path, scene: str = "core-fuzz", res: int = 64, views: int = 32,

@@ -159,3 +159,53 @@ def test_killed_rank_stops_the_run_and_resume_continues_it(data, tmp_path):
         assert max_relative_difference(want, _params(run)) <= 1e-5, name
         steps = [rec["step"] for rec in read_log(RunDir(run).log())]
         assert steps == list(range(1, 121)), name
+
+
+def test_two_process_render_of_a_path_and_a_split_equals_one_process(tmp_path):
+    """Frames i on rank i mod 2: the same PNG files, byte for byte, as a one-process render; the
+    metrics agree (timings aside)."""
+    from tests.conftest import trained_run
+
+    run = trained_run(tmp_path, tiny_config())
+    for extra in (["--path", "orbit", "--frames", "5"], []):  # a camera path, the test split
+        outs = []
+        for nproc in (0, 2):
+            out = tmp_path / f"r{nproc}-{len(extra)}"
+            r = launch(nproc, "shells-render", run, *extra, "--out", out)
+            assert r.returncode == 0, r.stderr[-2000:]
+            outs.append(out)
+        one, two = outs
+        pngs = sorted(p.name for p in one.glob("*.png"))
+        assert pngs and pngs == sorted(p.name for p in two.glob("*.png"))
+        for name in pngs:
+            assert (one / name).read_bytes() == (two / name).read_bytes(), name
+        m1, m2 = (json.loads((o / "metrics.json").read_text()) for o in outs)
+        assert (m1["processes"], m2["processes"]) == (1, 2)
+        for key in ("psnr", "ssim", "samples_per_pixel", "covered_fraction", "n_views"):
+            assert m1[key] == m2[key], key
+        if extra:
+            assert (two / "video.mp4").is_file()
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp folders
+
+
+def test_independent_shards_merge_into_the_one_process_render(tmp_path, capsys):
+    """`shells-render --shard K/N` as plain processes: nothing in OUT until the last shard is
+    done, then the same files as one process (heatmaps on one scale, metrics, video)."""
+    from shells.cli import render_main
+    from tests.conftest import trained_run
+
+    run = trained_run(tmp_path, tiny_config())
+    args = [str(run), "--path", "orbit", "--frames", "5"]
+    assert render_main([*args, "--out", str(tmp_path / "one")]) == 0
+    out = tmp_path / "sharded"
+    assert render_main([*args, "--out", str(out), "--shard", "1/2"]) == 0
+    assert not out.exists() and "written when all shards are done" in capsys.readouterr().out
+    assert render_main([*args, "--out", str(out), "--shard", "0/2"]) == 0
+    one = tmp_path / "one"
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in one.iterdir())
+    for p in one.glob("*.png"):
+        assert (out / p.name).read_bytes() == p.read_bytes(), p.name
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["processes"] == 2 and m["n_views"] == 5 and (out / "video.mp4").is_file()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # stage removed
+    assert render_main([*args, "--out", str(out), "--shard", "2/2"]) == 2

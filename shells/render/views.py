@@ -6,8 +6,10 @@
     spp_000.png ...    samples per pixel as a heatmap (black 0 -> yellow = max over the views)
 
 and returns the metrics (PSNR, SSIM, samples/pixel, ms/frame, resolution, mode). ms_per_frame
-is the median over warm frames (the first frame compiles the kernels) of ray batch -> image,
-measured after ``dr.sync_thread()``; camera ray generation (torch) is not included.
+is the median over warm frames (the first frame of each process compiles the kernels) of ray
+batch -> image, measured after ``dr.sync_thread()``; camera ray generation (torch) is not
+included. Several processes (`shells.distributed`) share the views: view i on rank i mod N.
+`write_video` turns the frames into an MP4.
 The run-level command around it (`shells-render RUN`) is `shells.pipeline.render_run`.
 """
 
@@ -25,6 +27,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from shells import distributed
 from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.metrics import psnr, ssim
@@ -70,45 +73,98 @@ def render_views(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
                  mode: str,
                  scene: ShellScene | None,
                  aabb: Any,  # [2, 3]
-                 out: Path,  # existing folder for the PNGs
+                 out: Path,  # existing folder for the PNGs (shared by all ranks)
                  progress: bool = True,
                  background: tuple[float, float, float] = WHITE,  # the data set's
+                 world: distributed.World | None = None,  # rank r of N renders views r, r+N, ..
                  ) -> dict[str, Any]:
-    """Render all views into ``out``; returns the metrics (without the run's protocol fields)."""
-    n, H, W = len(cameras), cameras.height, cameras.width
-    times, psnrs, ssims, spps = [], [], [], []
-    for i in tqdm(range(n), desc=f"render {mode}", disable=not progress):
-        o, d = cameras.pixel_rays(i, cfg.spp)
-        dr.sync_thread()
-        t0 = time.perf_counter()
-        img, spp = render_image(field, o, d, H, W, cfg, mode, scene, aabb, background)
-        dr.sync_thread()
-        times.append(time.perf_counter() - t0)
+    """Render the views into ``out``; returns the metrics of all views (on every rank; without
+    the run's protocol fields). With several ranks each renders its share and the heatmaps
+    share one scale; the images are those of a single process, bit for bit."""
+    w = world or distributed.World()
+    views, warm, spps = render_frames(field, cameras, images, cfg, mode, scene, aabb, out,
+                                      progress, background, w)
+    parts = distributed.gather_objects((views, warm))
+    views = [v for p in parts for v in p[0]]
+    warm = [t for p in parts for t in p[1]]
+    return summarise(views, warm, spps, out, cameras, mode, w.size)
+
+
+def render_frames(field: Any, cameras: Any, images: torch.Tensor | None, cfg: RenderConfig,
+                  mode: str, scene: ShellScene | None, aabb: Any, out: Path, progress: bool,
+                  background: tuple[float, float, float], w: distributed.World,
+                  ) -> tuple[list[dict[str, Any]], list[float], dict[int, torch.Tensor]]:
+    """Views r, r + N, ... of rank r of N into out/r_###.png: per-view records, warm frame
+    times, samples-per-pixel maps {view: [H, W]}."""
+    mine = list(range(w.rank, len(cameras), w.size))
+    views, warm, spps = [], [], {}
+    for j, i in enumerate(tqdm(mine, desc=f"render {mode}", disable=not (progress and w.main))):
+        img, spp, seconds = _render_view(field, cameras, i, cfg, mode, scene, aabb, background)
+        if j > 0:  # the first frame of a process compiles the kernels
+            warm.append(seconds)
         iio.imwrite(out / f"r_{i:03d}.png", to_png(img))
-        spps.append(spp)
-        if images is not None:
-            psnrs.append(psnr(img, images[i]))
-            ssims.append(ssim(img, images[i]))
-    if n == 1:  # one view: time a second, warm render of it
-        o, d = cameras.pixel_rays(0, cfg.spp)
-        dr.sync_thread()
-        t0 = time.perf_counter()
-        render_image(field, o, d, H, W, cfg, mode, scene, aabb, background)
-        dr.sync_thread()
-        times.append(time.perf_counter() - t0)
-    vmax = max(float(s.max()) for s in spps)
-    for i, s in enumerate(spps):
+        spps[i] = spp
+        views.append({"view": i, "spp_sum": float(spp.double().sum()),
+                      "covered": int((spp > 0).sum()), "spp_max": float(spp.max()),
+                      "psnr": psnr(img, images[i]) if images is not None else None,
+                      "ssim": ssim(img, images[i]) if images is not None else None,
+                      "first_s": seconds if j == 0 else None})
+    if len(mine) == 1:  # one view: time a second, warm render of it
+        warm.append(_render_view(field, cameras, mine[0], cfg, mode, scene, aabb, background)[2])
+    return views, warm, spps
+
+
+def summarise(views: list[dict[str, Any]], warm: list[float], spps: dict[int, torch.Tensor],
+              out: Path, cameras: Any, mode: str, processes: int) -> dict[str, Any]:
+    """Heatmaps out/spp_###.png of the maps in ``spps`` on the scale of all ``views``, and the
+    metrics of all views."""
+    n, H, W = len(cameras), cameras.height, cameras.width
+    views = sorted(views, key=lambda v: v["view"])
+    vmax = max(v["spp_max"] for v in views)
+    for i, s in spps.items():
         iio.imwrite(out / f"spp_{i:03d}.png", heatmap(s, vmax))
-    all_spp = torch.stack(spps).float()
-    covered = all_spp > 0
+    psnrs = [v["psnr"] for v in views if v["psnr"] is not None]
+    ssims = [v["ssim"] for v in views if v["ssim"] is not None]
+    covered = sum(v["covered"] for v in views)
+    firsts = [v["first_s"] for v in views if v["first_s"] is not None]
     return {
         "psnr": float(np.mean(psnrs)) if psnrs else None,
         "ssim": float(np.mean(ssims)) if ssims else None,
         "psnr_per_view": psnrs or None,
-        "samples_per_pixel": float(all_spp.mean()),
-        "samples_per_covered_pixel": float(all_spp[covered].mean()) if covered.any() else 0.0,
-        "covered_fraction": float(covered.float().mean()),
-        "ms_per_frame": 1e3 * statistics.median(times[1:]),
-        "ms_first_frame": 1e3 * times[0],
-        "width": W, "height": H, "n_views": n, "mode": mode,
+        "samples_per_pixel": sum(v["spp_sum"] for v in views) / (n * H * W),
+        "samples_per_covered_pixel": (sum(v["spp_sum"] for v in views) / covered
+                                      if covered else 0.0),
+        "covered_fraction": covered / (n * H * W),
+        "ms_per_frame": 1e3 * statistics.median(warm),
+        "ms_first_frame": 1e3 * max(firsts),
+        "width": W, "height": H, "n_views": n, "mode": mode, "processes": processes,
     }
+
+
+def _render_view(field: Any, cameras: Any, i: int, cfg: RenderConfig, mode: str,
+                 scene: ShellScene | None, aabb: Any, background: tuple[float, float, float],
+                 ) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """View i: image [H, W, 3], samples per pixel [H, W], seconds (ray batch -> image)."""
+    o, d = cameras.pixel_rays(i, cfg.spp)
+    dr.sync_thread()
+    t0 = time.perf_counter()
+    img, spp = render_image(field, o, d, cameras.height, cameras.width, cfg, mode, scene, aabb,
+                            background)
+    dr.sync_thread()
+    return img, spp, time.perf_counter() - t0
+
+
+def write_video(frames: list[Path], path: Path, fps: float) -> None:
+    """An H.264 MP4 of the PNG ``frames`` (read one at a time: bounded memory); odd sizes are
+    padded by one edge pixel (H.264 wants even sizes)."""
+    import imageio.v2 as iio2
+
+    writer = iio2.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264",
+                             quality=8, macro_block_size=1, ffmpeg_log_level="error")
+    try:
+        for f in frames:
+            img = iio.imread(f)[..., :3]
+            pad = ((0, img.shape[0] % 2), (0, img.shape[1] % 2), (0, 0))
+            writer.append_data(np.pad(img, pad, mode="edge"))
+    finally:
+        writer.close()
