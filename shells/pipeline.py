@@ -232,7 +232,8 @@ def _render_shard(field: Any, cams: Any, images: Any, rc: Any, mode: str, scene:
                 spps.update({int(i): torch.from_numpy(z[i]) for i in z.files})
             for f in p.glob("r_*.png"):
                 shutil.copy2(f, merged / f.name)  # the shards stay until the merge is done
-        metrics = summarise(views, warm, spps, merged, cams, mode, n)
+        metrics = summarise(views, warm, spps, merged, cams, mode, n,
+                            cams.height * cams.width * rc.spp)
         metrics.update(extra)
         _finish(merged, out, metrics)
         shutil.rmtree(stage, ignore_errors=True)

@@ -101,6 +101,25 @@ def test_render_a_path_to_frames_and_video(tmp_path, capsys):
     assert m["path"] == "orbit" and m["fps"] == 30.0 and m["psnr"] is None and m["n_views"] == 5
     video = iio2.mimread(out / "video.mp4")
     assert len(video) == 5 and video[0].shape[:2] == (16, 16)  # 15 x 15 padded to even
+    # frame k is the render of path camera k (the same pixels as rendering that camera alone),
+    # and the video holds it up to H.264's loss
+    import imageio.v3 as iio
+
+    from shells.datasets import load_dataset
+    from shells.fields.drjit_field import DrJitField
+    from shells.render.frame import render_image
+    from shells.render.views import to_png
+    from shells.run import RunDir, load_field, load_shells, read_run
+
+    field, cfg = load_field(run)
+    data = load_dataset(read_run(RunDir(run))["data"], "train")
+    cams, _ = camera_path("orbit", data.cameras, data.aabb, 5, width=15)
+    o, d = cams.pixel_rays(2)
+    img, _ = render_image(DrJitField(field), o, d, cams.height, cams.width, cfg.render, "band",
+                          load_shells(RunDir(run)), data.aabb, tuple(cfg.data.background))
+    frame = iio.imread(out / "r_002.png")
+    assert np.array_equal(frame, to_png(img))
+    assert np.abs(video[2][:15, :15].astype(float) - frame).mean() < 8.0
     capsys.readouterr()
     assert render_main([str(run), "--path", "orbit", "--fps", "0",
                         "--out", str(tmp_path / "x")]) == 2

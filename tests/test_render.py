@@ -309,6 +309,11 @@ def test_render_run_end_to_end(tmp_path, tiny_blender):
                 "n_views", "protocol"):
         assert key in saved, key
     assert (saved["width"], saved["height"], saved["mode"]) == (16, 16, "band")
+    # nerfstudio ns-eval's names, top level and under "results" (its layout)
+    for key in ("psnr", "ssim", "fps", "num_rays_per_sec"):
+        assert saved[key] == saved["results"][key] and saved[f"{key}_std"] is not None, key
+    assert saved["psnr_std"] == pytest.approx(float(np.std(saved["psnr_per_view"])))
+    assert saved["num_rays_per_sec"] == pytest.approx(256 * saved["fps"], rel=1e-6)
     assert 0 < saved["samples_per_pixel"] <= 16 and saved["psnr"] > 0
 
     mf = render_run(run, mode="full", width=8, out=tmp_path / "full8", progress=False)

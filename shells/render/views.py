@@ -87,7 +87,8 @@ def render_views(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
     parts = distributed.gather_objects((views, warm))
     views = [v for p in parts for v in p[0]]
     warm = [t for p in parts for t in p[1]]
-    return summarise(views, warm, spps, out, cameras, mode, w.size)
+    return summarise(views, warm, spps, out, cameras, mode, w.size,
+                     cameras.height * cameras.width * cfg.spp)
 
 
 def render_frames(field: Any, cameras: Any, images: torch.Tensor | None, cfg: RenderConfig,
@@ -115,9 +116,10 @@ def render_frames(field: Any, cameras: Any, images: torch.Tensor | None, cfg: Re
 
 
 def summarise(views: list[dict[str, Any]], warm: list[float], spps: dict[int, torch.Tensor],
-              out: Path, cameras: Any, mode: str, processes: int) -> dict[str, Any]:
+              out: Path, cameras: Any, mode: str, processes: int,
+              rays_per_frame: int) -> dict[str, Any]:
     """Heatmaps out/spp_###.png of the maps in ``spps`` on the scale of all ``views``, and the
-    metrics of all views."""
+    metrics of all views (with nerfstudio's ns-eval names, `ns_eval`)."""
     n, H, W = len(cameras), cameras.height, cameras.width
     views = sorted(views, key=lambda v: v["view"])
     vmax = max(v["spp_max"] for v in views)
@@ -127,9 +129,7 @@ def summarise(views: list[dict[str, Any]], warm: list[float], spps: dict[int, to
     ssims = [v["ssim"] for v in views if v["ssim"] is not None]
     covered = sum(v["covered"] for v in views)
     firsts = [v["first_s"] for v in views if v["first_s"] is not None]
-    return {
-        "psnr": float(np.mean(psnrs)) if psnrs else None,
-        "ssim": float(np.mean(ssims)) if ssims else None,
+    return {**ns_eval(psnrs, ssims, warm, rays_per_frame),
         "psnr_per_view": psnrs or None,
         "samples_per_pixel": sum(v["spp_sum"] for v in views) / (n * H * W),
         "samples_per_covered_pixel": (sum(v["spp_sum"] for v in views) / covered
@@ -139,6 +139,23 @@ def summarise(views: list[dict[str, Any]], warm: list[float], spps: dict[int, to
         "ms_first_frame": 1e3 * max(firsts),
         "width": W, "height": H, "n_views": n, "mode": mode, "processes": processes,
     }
+
+
+def ns_eval(psnrs: list[float], ssims: list[float], warm: list[float],
+            rays_per_frame: int) -> dict[str, Any]:
+    """The fields of nerfstudio's ns-eval output: mean and standard deviation over the views of
+    PSNR and SSIM, and over the warm frames of fps and rays per second (LPIPS is left out: its
+    network weights are not available offline). Also nested under "results", as ns-eval
+    writes them."""
+    def stats(name: str, xs: list[float]) -> dict[str, float | None]:
+        if not xs:
+            return {name: None, f"{name}_std": None}
+        return {name: float(np.mean(xs)), f"{name}_std": float(np.std(xs))}
+
+    out = {**stats("psnr", psnrs), **stats("ssim", ssims),
+           **stats("fps", [1.0 / t for t in warm]),
+           **stats("num_rays_per_sec", [rays_per_frame / t for t in warm])}
+    return {**out, "results": dict(out)}
 
 
 def _render_view(field: Any, cameras: Any, i: int, cfg: RenderConfig, mode: str,
