@@ -93,6 +93,46 @@ def scene_main(argv: Sequence[str] | None = None) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+# shells-process-data
+# --------------------------------------------------------------------------------------------
+
+def process_data_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="shells-process-data",
+        description="Camera poses for a folder of photos by structure from motion (COLMAP via "
+                    "pycolmap, on the CPU), written as an Instant-NGP transforms.json with the "
+                    "photos in DATA/images; then shells-train --data DATA.")
+    p.add_argument("images", help="folder of photos (.png / .jpg) of one scene, one camera")
+    p.add_argument("--out", required=True, help="data set folder to create")
+    p.add_argument("--downscale", type=int, default=1,
+                   help="shrink the photos by this integer factor first (faster; default 1)")
+    p.add_argument("--matching", choices=["exhaustive", "sequential"], default="exhaustive",
+                   help="feature matching: every pair (default) or neighbours in file order "
+                        "(video frames)")
+    p.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                   choices=["OPENCV", "PINHOLE", "SIMPLE_RADIAL", "SIMPLE_PINHOLE"],
+                   help="COLMAP camera model shared by the photos (default SIMPLE_RADIAL: f, "
+                        "cx, cy, k1, COLMAP's default; OPENCV: fx, fy, cx, cy, k1, k2, p1, p2 "
+                        "for strongly distorted lenses)")
+    return p
+
+
+def _process_data(args: argparse.Namespace) -> int:
+    from shells.process_data import process_data
+
+    s = process_data(args.images, args.out, args.downscale, args.matching, args.camera_model)
+    intr = s["intrinsics"]
+    print(f"registered {s['registered']} of {s['photos']} photos ({s['camera_model']}, "
+          f"fl_x {intr['fl_x']:.1f}, {intr['w']}x{intr['h']}) in {s['seconds']:.0f} s; "
+          f"wrote {args.out}/transforms.json")
+    return 0
+
+
+def process_data_main(argv: Sequence[str] | None = None) -> int:
+    return _run(_process_data, process_data_parser(), argv)
+
+
+# --------------------------------------------------------------------------------------------
 # shells-train, shells-extract, shells-finetune, shells-render
 # --------------------------------------------------------------------------------------------
 

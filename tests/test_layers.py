@@ -29,7 +29,7 @@ RANKS = {
     "shells.errors": 0,
     "shells.config": 1, "shells.device": 1, "shells.cameras": 1, "shells.metrics": 1,
     "shells.distributed": 1,
-    "shells.datasets": 2, "shells.camera_paths": 2, "scenes": 2,
+    "shells.datasets": 2, "shells.camera_paths": 2, "shells.process_data": 2, "scenes": 2,
     "shells.fields": 3, "shells.levelset": 3,
     "shells.render": 4,
     "shells.run": 5,
