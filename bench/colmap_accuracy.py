@@ -1,6 +1,7 @@
 """Accuracy of `shells-process-data` poses against known ones (e.g. NeRF-synthetic lego).
 
     python bench/colmap_accuracy.py DATA TRUE_TRANSFORMS [--json OUT]
+        [--eval-run RUN --true-data DIR --downscale N]
 
 DATA is what shells-process-data wrote (transforms.json, images/NAME); TRUE_TRANSFORMS a
 Blender / Instant-NGP transforms file whose frames name the same images (matched by file
@@ -9,7 +10,12 @@ rotation, translation, least squares); then per registered image the rotation er
 the angle of R_true^T R_aligned) and the position error as a fraction of the true cameras'
 mean distance from their centroid (the camera-sphere radius). The similarity is fitted on the
 images within 3x the median position error (at least 1 %), refitted until that set is stable,
-so one wrong registration does not tilt the others; every image counts in the shares. Reports the registered share and
+so one wrong registration does not tilt the others; every image counts in the shares.
+
+``--eval-run RUN`` (a stage-1 run trained on DATA) also scores that run on the *true* test
+views of ``--true-data`` (e.g. lego's transforms_test.json): their cameras are mapped into
+DATA's world by the inverse of the fitted similarity, so the run is compared on the same
+images as a run trained on the true poses. Reports the registered share and
 the share within 1 degree and 1 % of the radius, and the recovered focal length.
 """
 
@@ -63,6 +69,7 @@ def accuracy(data: Path, truth: Path) -> dict:
     cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
     rot_err = np.degrees(np.arccos(cos))
     good = (rot_err <= 1.0) & (pos_err <= 0.01)
+    accuracy.similarity = (s, rot, t)  # est world -> true world, for --eval-run
     doc = json.loads((data / "transforms.json").read_text())
     return {"data": str(data), "truth": str(truth), "true_images": len(ref),
             "registered": len(names), "registered_fraction": len(names) / len(ref),
@@ -76,13 +83,43 @@ def accuracy(data: Path, truth: Path) -> dict:
             "fl_x": doc.get("fl_x"), "fl_y": doc.get("fl_y"), "w": doc.get("w")}
 
 
+def eval_on_true_views(run: Path, true_data: Path, downscale: int,
+                       similarity: tuple) -> dict:
+    """Full-ray test PSNR of RUN's stage-1 field on the true test views mapped into its world."""
+    import dataclasses
+
+    import torch
+
+    from shells.datasets import load_dataset
+    from shells.run import load_field
+    from shells.training import evaluate
+
+    s, rot, t = similarity
+    field, cfg = load_field(run, stage="stage1")
+    test = load_dataset(true_data, "test", downscale=downscale, background=cfg.data.background)
+    c2w = test.cameras.c2w.double().numpy().copy()  # OpenCV axes, true world
+    inv = rot.T
+    c2w[:, :3, :3] = inv @ c2w[:, :3, :3]
+    c2w[:, :3, 3] = ((c2w[:, :3, 3] - t) @ inv.T) / s
+    cams = dataclasses.replace(test.cameras, c2w=torch.from_numpy(c2w).float())
+    res = evaluate(field, dataclasses.replace(test, cameras=cams), cfg.train)
+    return {"run": str(run), "true_test_psnr": res["psnr"], "n_views": res["n_views"]}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("data", type=Path)
     p.add_argument("truth", type=Path)
     p.add_argument("--json", default=None)
+    p.add_argument("--eval-run", type=Path, default=None)
+    p.add_argument("--true-data", type=Path, default=None)
+    p.add_argument("--downscale", type=int, default=1, help="of --true-data's images")
     args = p.parse_args(argv)
-    emit_json(accuracy(args.data, args.truth), args.json)
+    out = accuracy(args.data, args.truth)
+    if args.eval_run:
+        out["eval"] = eval_on_true_views(args.eval_run, args.true_data or args.truth.parent,
+                                         args.downscale, accuracy.similarity)
+    emit_json(out, args.json)
     return 0
 
 
