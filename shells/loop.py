@@ -164,7 +164,7 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
     k = start
     try:
         for k in range(start, end):
-            gens = [step_generator(sched.seed, k, device, shard) for shard in mine]
+            gens = [step_generator(sched.seed, k, device, j) for j in mine]
             factor = lr_factor(k, sched.iters, sched.warmup, sched.final)
             for g in opt.param_groups:
                 g["lr"] = g["base_lr"] * factor
