@@ -9,6 +9,7 @@ import argparse
 import os
 import signal
 import sys
+import traceback
 from typing import Callable, Sequence
 
 from shells import distributed
@@ -31,6 +32,11 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
         status = 130
+    except Exception:
+        if distributed.launched_world() <= 1:
+            raise
+        traceback.print_exc()  # a torchrun worker leaves through os._exit: print it first
+        status = 1
     finally:
         signal.signal(signal.SIGTERM, previous)
         if distributed.launched_world() > 1:
