@@ -355,3 +355,35 @@ def _demo(args: argparse.Namespace) -> int:
 
 def demo_main(argv: Sequence[str] | None = None) -> int:
     return _run(_demo, demo_parser(), argv)
+
+
+# --------------------------------------------------------------------------------------------
+# shells-view
+# --------------------------------------------------------------------------------------------
+
+def view_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="shells-view",
+        description="Web viewer (viser): the shells, the training cameras and the band render "
+                    "of the browser's camera as the background, re-rendered as it moves. "
+                    "Runs headless and prints the URL to open.")
+    p.add_argument("run", help="run directory with a checkpoint and shells")
+    p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest")
+    p.add_argument("--resolution", type=int, default=320,
+                   help="longer side of the resting render in pixels (default 320)")
+    p.add_argument("--dump", default=None, metavar="DIR",
+                   help="write every resting render and its camera to DIR (tests, debugging)")
+    return p
+
+
+def _view(args: argparse.Namespace) -> int:
+    from shells.viewer import view
+
+    view(args.run, args.host, args.port, args.stage, args.resolution, args.dump)
+    return 0
+
+
+def view_main(argv: Sequence[str] | None = None) -> int:
+    return _run(_view, view_parser(), argv)

@@ -7,8 +7,9 @@ Steps (each with a progress bar):
 2. SIFT features on the CPU, one shared camera (COLMAP's ``SIMPLE_RADIAL`` model by default:
    f, cx, cy, k1; ``OPENCV`` adds fy, k2, p1, p2 but registered only 2 of lego's 87 views
    where SIMPLE_RADIAL registered 85), exhaustive or sequential matching;
-3. incremental mapping; the reconstruction with the most registered images is kept; fewer than
-   half of the photos (or fewer than 3) registered is an error;
+3. incremental mapping (one thread, a fixed random seed: the same photos give the same poses);
+   the reconstruction with the most registered images is kept; fewer than half of the photos
+   (or fewer than 3) registered is an error;
 4. poses oriented and scaled as nerfstudio does: up = the mean of the cameras' up vectors,
    turned to +z; the centre is the point nearest to all optical axes (Instant-NGP's
    colmap2nerf; the mean of the camera positions, nerfstudio's default, lies above a
@@ -157,7 +158,11 @@ def process_data(images_dir: str | Path, out: str | Path, downscale: int = 1,
             pycolmap.match_sequential(db, device=pycolmap.Device.cpu)
         steps.update(1)
         steps.set_postfix_str("incremental mapping")
-        recs = pycolmap.incremental_mapping(db, stage / "images", colmap / "sparse")
+        mapper = pycolmap.IncrementalPipelineOptions()
+        mapper.num_threads, mapper.random_seed = 1, 0  # reproducible: one thread, fixed seed
+        pycolmap.set_random_seed(0)
+        recs = pycolmap.incremental_mapping(db, stage / "images", colmap / "sparse",
+                                            options=mapper)
         steps.update(1)
         steps.close()
         if not recs:

@@ -13,7 +13,7 @@ subpackage at the same layer):
     5 run            the run directory (builds fields, shells)
     6 loop           the optimisation loop of every training stage
     7 training, finetune
-    8 pipeline       run-level extraction and rendering, the demo
+    8 pipeline       run-level extraction and rendering, the demo; viewer
     9 cli
    10 bench/
 """
@@ -35,7 +35,7 @@ RANKS = {
     "shells.run": 5,
     "shells.loop": 6,
     "shells.training": 7, "shells.finetune": 7,
-    "shells.pipeline": 8,
+    "shells.pipeline": 8, "shells.viewer": 8,
     "shells.cli": 9,
     "bench": 10,
 }

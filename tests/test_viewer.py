@@ -1,0 +1,131 @@
+"""shells-view in a real browser: headless Debian chromium loads the page, the viewer renders the
+browser's camera, and the screenshot shows the object where the band render has it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from tests.conftest import tiny_config, trained_run
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def screenshot(url: str, path: Path, ready, timeout: float = 90.0) -> None:
+    """Open ``url`` in headless chromium and save a screenshot once ``ready()`` (real time: the
+    page's websocket traffic must arrive, which --virtual-time-budget does not wait for)."""
+    import base64
+    import urllib.request
+
+    from websockets.sync.client import connect
+
+    port = _free_port()
+    browser = subprocess.Popen([CHROMIUM, "--headless", "--no-sandbox", "--use-gl=swiftshader",
+                                "--enable-unsafe-swiftshader", "--window-size=960,720",
+                                f"--remote-debugging-port={port}", "about:blank"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        t0 = time.time()
+        while True:
+            try:
+                targets = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json",
+                                                            timeout=2).read())
+                page = next(t for t in targets if t.get("type") == "page")
+                break
+            except (OSError, StopIteration):
+                assert time.time() - t0 < 30, "chromium did not start"
+                time.sleep(0.2)
+        with connect(page["webSocketDebuggerUrl"], max_size=None) as ws:
+            # a fixed 960 x 720 page: the object sits clear of the browser's corner notice
+            ws.send(json.dumps({"id": 0, "method": "Emulation.setDeviceMetricsOverride",
+                                "params": {"width": 960, "height": 720, "deviceScaleFactor": 1,
+                                           "mobile": False}}))
+            ws.send(json.dumps({"id": 1, "method": "Page.navigate", "params": {"url": url}}))
+            t0 = time.time()
+            while not ready():
+                assert time.time() - t0 < timeout, "the viewer never rendered the page's camera"
+                time.sleep(0.2)
+            time.sleep(1.0)  # the last background image reaches the page
+            ws.send(json.dumps({"id": 2, "method": "Page.captureScreenshot"}))
+            while True:
+                msg = json.loads(ws.recv(timeout=30))
+                if msg.get("id") == 2:
+                    path.write_bytes(base64.b64decode(msg["result"]["data"]))
+                    break
+    finally:
+        browser.terminate()
+        browser.wait(timeout=30)
+
+
+def foreground(img: np.ndarray) -> np.ndarray:  # [H, W, 3] uint8 -> [H, W] bool
+    return img[..., :3].astype(np.float64).mean(-1) < 0.92 * 255
+
+
+def test_quaternion_round_trip():
+    from shells.cameras import look_at
+    from shells.viewer import camera_c2w, wxyz_of
+
+    c2w = look_at((1.0, 2.0, 3.0), (0.0, 0.0, 0.0)).double().numpy()
+    back = camera_c2w(wxyz_of(c2w[:3, :3]), c2w[:3, 3]).double().numpy()
+    np.testing.assert_allclose(back, c2w, atol=1e-6)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs Debian's chromium (apt install chromium)")
+def test_viewer_in_a_headless_browser_shows_the_object(tmp_path):
+    run = trained_run(tmp_path, tiny_config())
+    port, dump = _free_port(), tmp_path / "dump"
+    script = Path(sys.executable).parent / "shells-view"
+    server = subprocess.Popen([str(script), str(run), "--host", "127.0.0.1", "--port",
+                               str(port), "--resolution", "160", "--dump", str(dump)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = ""
+        t0 = time.time()
+        while "shells-view:" not in line and time.time() - t0 < 120:
+            line = server.stdout.readline()
+            assert line or server.poll() is None, "shells-view exited"
+        assert f"http://127.0.0.1:{port}" in line  # the URL is printed
+        shot = tmp_path / "shot.png"
+        t0 = time.time()
+        screenshot(f"http://127.0.0.1:{port}", shot, lambda: (dump / "camera.json").is_file()
+                   and time.time() - t0 > 3)
+        assert shot.is_file() and (dump / "frame.png").is_file()
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    page = iio.imread(shot)[..., :3]
+    frame = iio.imread(dump / "frame.png")[..., :3]
+    aspect = json.loads((dump / "camera.json").read_text())["aspect"]
+    # the 3D canvas is left of the control panel; the background image fills its non-black part
+    canvas = page[:, :round(aspect * page.shape[0])]
+    rows = np.nonzero((canvas.max(-1) > 10).any(1))[0]
+    cols = np.nonzero((canvas.max(-1) > 10).any(0))[0]
+    canvas = canvas[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    h, w = canvas.shape[:2]
+    yi = (np.arange(h) * frame.shape[0] / h).astype(int)
+    xi = (np.arange(w) * frame.shape[1] / w).astype(int)
+    want = foreground(frame[yi][:, xi])
+    assert want.mean() > 0.02  # the render does show the object
+    # compare around the object (the browser's notice about software WebGL sits in a corner)
+    ys, xs = np.nonzero(want)
+    my, mx = int(0.15 * (ys.max() - ys.min())) + 2, int(0.15 * (xs.max() - xs.min())) + 2
+    box = (slice(max(ys.min() - my, 0), ys.max() + my), slice(max(xs.min() - mx, 0), xs.max() + mx))
+    got, want = foreground(canvas)[box], want[box]
+    iou = (got & want).sum() / max((got | want).sum(), 1)
+    print(f"viewer screenshot vs band render: IoU {iou:.3f}")
+    assert iou >= 0.9, iou
