@@ -118,16 +118,22 @@ class Viewer:
                 s.visible = show_shells.value
 
         c0 = cams.c2w[0].double().numpy()
+        alive: dict[int, bool] = {}  # render loops stop when their browser tab goes
+
+        @server.on_client_disconnect
+        def _(client: Any) -> None:
+            alive.pop(client.client_id, None)
 
         @server.on_client_connect
         def _(client: Any) -> None:
             client.camera.fov = fov0
             client.camera.wxyz = wxyz_of(c0[:3, :3])
             client.camera.position = c0[:3, 3]
-            state = {"stamp": None, "full": False, "heat": None, "side": None}
+            state = {"stamp": None, "full": False, "heat": None, "side": None, "t": 0.0}
+            alive[client.client_id] = True
 
             def loop() -> None:
-                while True:
+                while alive.get(client.client_id):
                     cam = client.camera
                     stamp = (tuple(np.round(cam.wxyz, 6)), tuple(np.round(cam.position, 6)),
                              round(cam.fov, 6), round(cam.aspect, 6))
