@@ -147,20 +147,25 @@ def process_data(images_dir: str | Path, out: str | Path, downscale: int = 1,
         steps = tqdm(total=3, desc="COLMAP", unit="step")
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = camera_model
+        # one thread everywhere and a fixed seed: the same photos give the same poses
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = 1
+        matcher = pycolmap.FeatureMatchingOptions()
+        matcher.num_threads = 1
+        pycolmap.set_random_seed(0)
         steps.set_postfix_str("SIFT features")
         pycolmap.extract_features(db, stage / "images", camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=reader, device=pycolmap.Device.cpu)
+                                  reader_options=reader, extraction_options=extraction,
+                                  device=pycolmap.Device.cpu)
         steps.update(1)
         steps.set_postfix_str(f"{matching} matching")
-        if matching == "exhaustive":
-            pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
-        else:
-            pycolmap.match_sequential(db, device=pycolmap.Device.cpu)
+        match = (pycolmap.match_exhaustive if matching == "exhaustive"
+                 else pycolmap.match_sequential)
+        match(db, matching_options=matcher, device=pycolmap.Device.cpu)
         steps.update(1)
         steps.set_postfix_str("incremental mapping")
         mapper = pycolmap.IncrementalPipelineOptions()
-        mapper.num_threads, mapper.random_seed = 1, 0  # reproducible: one thread, fixed seed
-        pycolmap.set_random_seed(0)
+        mapper.num_threads, mapper.random_seed = 1, 0
         recs = pycolmap.incremental_mapping(db, stage / "images", colmap / "sparse",
                                             options=mapper)
         steps.update(1)

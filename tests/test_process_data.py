@@ -61,13 +61,14 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
 @pytest.mark.data
 @pytest.mark.skipif(not (DATA / "lego").is_dir(), reason="../shared/data/lego not present")
 def test_colmap_recovers_the_lego_poses(tmp_path):
-    """The 87 lego training views at 400x400 on white, poses withheld (about 40 s on 2 cores):
-    >= 95 % registered, median errors well under 1 degree and 1 % of the camera-sphere radius
-    after a similarity alignment, and the focal length within 3 %.
+    """The 87 lego training views at 400x400 on white, poses withheld (about 60 s on 2 cores;
+    COLMAP runs on one thread with a fixed seed, so a run repeats exactly): >= 95 % registered,
+    median errors well under 1 degree and 1 % of the camera-sphere radius after a similarity
+    alignment, the focal length within 3 %.
 
-    Not asserted here: issue 16's ">= 95 % of the images within 1 degree and 1 %". COLMAP's
-    multi-threaded extraction and matching vary from run to run, and that share came out
-    between 91 % and 97 % (bench/colmap_accuracy.py, BENCHMARKS.md)."""
+    Not asserted: issue 16's ">= 95 % within 1 degree and 1 %". On the images this test makes,
+    82 of 87 (94.3 %) are within; on images shrunk by plain 2x2 averaging, 83 (95.4 %)
+    (BENCHMARKS.md). The criterion sits at the edge, so a regression guard of 85 % stands in."""
     import imageio.v3 as iio
 
     from shells.datasets import load_dataset
@@ -88,6 +89,7 @@ def test_colmap_recovers_the_lego_poses(tmp_path):
     assert acc["rotation_error_deg"]["median"] < 0.5, acc
     assert acc["position_error_of_radius"]["median"] < 0.01, acc
     assert acc["within_fraction_of_all"] >= 0.85, acc  # see the docstring
+    print(f"lego: {acc['within_1deg_1pct']} of {acc['true_images']} within 1 deg / 1 %")
     f_true = 0.5 * 400 / math.tan(0.5 * json.loads(
         (DATA / "lego" / "transforms_train.json").read_text())["camera_angle_x"])
     assert acc["fl_x"] == pytest.approx(f_true, rel=0.03)
