@@ -43,7 +43,7 @@ import drjit as dr
 
 from shells.errors import InputError
 from shells.pipeline import check_run
-from shells.render.views import render_views, resized_cameras
+from shells.render.views import render_views
 from shells.run import RunDir, load_field, load_shells
 
 LABELS = {
@@ -203,7 +203,7 @@ def run_bench(run_dir: Path, split: str = "test", width: int | None = None,
     outer_only = ShellScene(load_ply(run.outer), None, variant)
     data = load_dataset(meta["data"], split, downscale=int(meta["downscale"]), background=bg)
     n = len(data.cameras) if not views else min(int(views), len(data.cameras))
-    cams = resized_cameras(data.cameras[:n], width, height)
+    cams = data.cameras[:n].resized(width, height)
     same_size = (cams.width, cams.height) == (data.cameras.width, data.cameras.height)
     images = data.images[:n] if same_size else None
     dj = DrJitField(field)

@@ -69,11 +69,8 @@ def _basis(up: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _intrinsics(cams: Cameras, width: int | None, height: int | None) -> tuple[float, float,
                                                                                 int, int]:
-    w = width or (round(cams.width * height / cams.height) if height else cams.width)
-    h = height or (round(cams.height * width / cams.width) if width else cams.height)
-    if w < 1 or h < 1:
-        raise InputError(f"--width {width} --height {height}: must be positive")
-    return float(cams.fx[0]) * w / cams.width, float(cams.fy[0]) * h / cams.height, int(w), int(h)
+    first = cams[:1].resized(width, height)
+    return float(first.fx[0]), float(first.fy[0]), first.width, first.height
 
 
 def around(cams: Cameras, aabb: Any, frames: int, spiral: bool = False,

@@ -189,6 +189,21 @@ class Cameras:
                        cy=self.cy / factor, width=self.width // factor,
                        height=self.height // factor)
 
+    def resized(self, width: int | None, height: int | None) -> "Cameras":
+        """Cameras at another resolution: intrinsics scaled per axis (aspect kept if one is
+        None; both None: unchanged)."""
+        if width is None and height is None:
+            return self
+        if width is None:
+            width = max(1, round(self.width * height / self.height))
+        if height is None:
+            height = max(1, round(self.height * width / self.width))
+        if width < 1 or height < 1:
+            raise InputError(f"--width {width} --height {height}: must be positive")
+        sx, sy = width / self.width, height / self.height
+        return replace(self, fx=self.fx * sx, cx=self.cx * sx, fy=self.fy * sy,
+                       cy=self.cy * sy, width=int(width), height=int(height))
+
     def intrinsics(self) -> Tensor:  # -> [N, 3, 3]
         """Pinhole matrices K (distortion not included)."""
         K = torch.zeros(len(self), 3, 3, dtype=self.fx.dtype, device=self.device)

@@ -365,7 +365,8 @@ def _read_image(path: Path) -> tuple[torch.Tensor, torch.Tensor | None]:
     return rgb, alpha
 
 
-def _area_downscale(x: torch.Tensor, f: int) -> torch.Tensor:  # [H, W, C] -> [H//f, W//f, C]
+def area_downscale(x: torch.Tensor, f: int) -> torch.Tensor:  # [H, W, C] -> [H//f, W//f, C]
+    """Mean of f x f blocks (the image cropped at the bottom/right to a multiple of f)."""
     h, w = (x.shape[0] // f) * f, (x.shape[1] // f) * f
     x = x[:h, :w].permute(2, 0, 1)[None]
     return F.avg_pool2d(x, f)[0].permute(1, 2, 0)
@@ -376,18 +377,18 @@ def _process(rgb: torch.Tensor, alpha: torch.Tensor | None, f: int,
              ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Composite (or keep straight colour), then area-downscale; returns rgb, alpha."""
     if alpha is None:
-        return (_area_downscale(rgb, f) if f > 1 else rgb), None
+        return (area_downscale(rgb, f) if f > 1 else rgb), None
     if background is not None:
         bg = torch.tensor(background, dtype=torch.float32)
         # compositing is linear, so compositing before averaging equals averaging the composite
         rgb = torch.lerp(bg.expand_as(rgb), rgb, alpha[..., None])  # rgb a + bg (1 - a)
         if f > 1:
-            rgb = _area_downscale(rgb, f)
-            alpha = _area_downscale(alpha[..., None], f)[..., 0]
+            rgb = area_downscale(rgb, f)
+            alpha = area_downscale(alpha[..., None], f)[..., 0]
         return rgb, alpha
     if f > 1:  # straight colour: alpha-weighted average so transparent junk does not bleed in
-        pre = _area_downscale(torch.cat([rgb * alpha[..., None], alpha[..., None]], -1), f)
-        plain = _area_downscale(rgb, f)
+        pre = area_downscale(torch.cat([rgb * alpha[..., None], alpha[..., None]], -1), f)
+        plain = area_downscale(rgb, f)
         alpha = pre[..., 3]
         safe = alpha.clamp_min(1e-8)[..., None]
         rgb = torch.where(alpha[..., None] > 0, pre[..., :3] / safe, plain).clamp(0, 1)

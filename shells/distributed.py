@@ -34,8 +34,7 @@ class World:
 def world(device: torch.device | str | None = None) -> World:
     """This process's place in the job, joining the process group on first use when the job has
     more than one process (torchrun's environment variables)."""
-    size = int(os.environ.get("WORLD_SIZE", "1"))
-    if size <= 1:
+    if launched_world() <= 1:
         return World()
     if not dist.is_initialized():
         cuda = device is not None and torch.device(device).type == "cuda"
@@ -57,7 +56,7 @@ def launched_rank() -> int:
 
 def rank_device(device: torch.device) -> torch.device:
     """The torch device of this rank: its own GPU (cuda:LOCAL_RANK) under torchrun."""
-    if device.type != "cuda" or int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+    if device.type != "cuda" or launched_world() <= 1:
         return device
     local = int(os.environ.get("LOCAL_RANK", "0"))
     torch.cuda.set_device(local)

@@ -21,7 +21,7 @@ from shells.datasets import Dataset, load_dataset
 from shells.device import mitsuba_variant, torch_device
 from shells.errors import InputError, write_json
 from shells.fields.network import ShellField
-from shells.loop import Schedule, make_optimizer, optimise, psnr_of
+from shells.loop import Schedule, join, make_optimizer, optimise, psnr_of
 from shells.render.band import render_band_rays
 from shells.render.raycast import ShellScene
 from shells.run import RunDir, field_from_checkpoint, load_shells, read_checkpoint, read_run
@@ -58,7 +58,6 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
         raise InputError(f"{run.outer}: no shells; run shells-extract {run.root} first")
     dev = distributed.rank_device(device if isinstance(device, torch.device)
                                   else torch_device(device))
-    w = distributed.world(dev)
     ckpt = None
     if resume:
         ckpt = read_checkpoint(run, "stage2")
@@ -72,8 +71,7 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
     override_config(cfg, config, ("finetune", "render"), "shells-finetune")
     if iters is not None:
         cfg.update({"finetune": {"iters": iters}}, "--iters")
-    if ckpt is None and w.size > 1 and cfg.finetune.shards == 1:  # one shard per process
-        cfg.update({"finetune": {"shards": w.size}}, f"torchrun ({w.size} processes)")
+    w = join(cfg, "finetune", ckpt is None, dev)
     fc, rc = cfg.finetune, cfg.render
     scene = load_shells(run, mitsuba_variant(rc.variant, dev))
     data = load_dataset(meta["data"], "train", downscale=int(meta["downscale"]),

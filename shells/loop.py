@@ -100,14 +100,23 @@ def psnr_of(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-10))
 
 
-def join(name: str, shards: int, device: torch.device) -> distributed.World:
-    """This process's place in the job (`shells.distributed.world`), checked against the
-    stage's ray shards: N processes need N to divide them."""
+def join(cfg: Config, section: str, fresh: bool, device: torch.device) -> distributed.World:
+    """This process's place in the job (`shells.distributed.world`) for the stage whose config
+    section is ``section`` ("train", "finetune"): a fresh run under torchrun with the default
+    single shard takes one shard per process (stored in ``cfg``); N processes must divide the
+    shards. Call it before the stage writes anything."""
     w = distributed.world(device)
+    if fresh and w.size > 1 and getattr(cfg, section).shards == 1:
+        cfg.update({section: {"shards": w.size}}, f"torchrun ({w.size} processes)")
+    _check_shards({"train": "stage 1", "finetune": "stage 2"}.get(section, section),
+                  getattr(cfg, section).shards, w)
+    return w
+
+
+def _check_shards(name: str, shards: int, w: distributed.World) -> None:
     if shards % w.size:
         raise InputError(f"{name}: {shards} ray shards per step cannot be shared by {w.size} "
                          f"processes; run a number of processes that divides it")
-    return w
 
 
 class _Shard(torch.nn.Module):
@@ -133,7 +142,8 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
              progress: bool = True) -> dict[str, Any]:
     """Run steps [start, end) of the schedule; returns the summary (step, seconds, rays_per_s,
     last, finished). ``cfg`` is what the checkpoints store with the field."""
-    w = join(sched.name, sched.shards, device)
+    w = distributed.world(device)
+    _check_shards(sched.name, sched.shards, w)
     start = 0
     if resume is not None:
         start = int(resume["step"])

@@ -104,7 +104,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     from shells.datasets import load_dataset
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
-    from shells.render.views import render_views, resized_cameras
+    from shells.render.views import render_views
 
     run = RunDir(run_dir)
     meta = check_run(run, mode)
@@ -127,7 +127,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
         name = Path(path).stem if path not in ("orbit", "spiral", "interpolate") else path
         default_out = run.root / f"path-{name}"
     else:
-        cams = resized_cameras(data.cameras, width, height)
+        cams = data.cameras.resized(width, height)
         same_size = (cams.width, cams.height) == (data.cameras.width, data.cameras.height)
         images = data.images if same_size else None
         default_out = run.render_dir(mode)

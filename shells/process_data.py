@@ -32,8 +32,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from tqdm.auto import tqdm
 
+from shells.datasets import area_downscale
 from shells.errors import InputError
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -64,9 +66,8 @@ def _copy_images(images: list[Path], dst: Path, downscale: int) -> None:
                              "replace it")
         if img.ndim == 2:
             img = img[..., None]
-        h, w = (img.shape[0] // downscale) * downscale, (img.shape[1] // downscale) * downscale
-        small = img[:h, :w].reshape(h // downscale, downscale, w // downscale, downscale, -1)
-        small = small.astype(np.float64).mean((1, 3)).round().astype(img.dtype)
+        small = area_downscale(torch.from_numpy(img.astype(np.float64)), downscale)
+        small = small.round().numpy().astype(img.dtype)
         iio.imwrite(dst / p.name, small if small.shape[-1] > 1 else small[..., 0])
 
 

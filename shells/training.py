@@ -130,11 +130,8 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
     if iters is not None:
         cfg.update({"train": {"iters": iters}}, "--iters")
     device = distributed.rank_device(device)
-    w = distributed.world(device)
-    if ckpt is None and w.size > 1 and cfg.train.shards == 1:  # one shard per process
-        cfg.update({"train": {"shards": w.size}}, f"torchrun ({w.size} processes)")
+    w = join(cfg, "train", ckpt is None, device)  # before anything is written
     tc = cfg.train
-    join("stage 1", tc.shards, device)  # before anything is written
     data = load_dataset(data_dir, "train", downscale=downscale, background=cfg.data.background)
     field = build_field(cfg, data.aabb, device)
     opt = make_optimizer(field, tc.lr, tc.lr_mlp)

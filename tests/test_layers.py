@@ -8,7 +8,7 @@ subpackage at the same layer):
     0 errors
     1 config, device, cameras, metrics, distributed
     2 datasets, camera_paths, scenes/
-    3 fields/, levelset/
+    3 fields/, levelset/, process_data
     4 render/
     5 run            the run directory (builds fields, shells)
     6 loop           the optimisation loop of every training stage
@@ -29,7 +29,8 @@ RANKS = {
     "shells.errors": 0,
     "shells.config": 1, "shells.device": 1, "shells.cameras": 1, "shells.metrics": 1,
     "shells.distributed": 1,
-    "shells.datasets": 2, "shells.camera_paths": 2, "shells.process_data": 2, "scenes": 2,
+    "shells.datasets": 2, "shells.camera_paths": 2, "scenes": 2,
+    "shells.process_data": 3,
     "shells.fields": 3, "shells.levelset": 3,
     "shells.render": 4,
     "shells.run": 5,

@@ -223,7 +223,7 @@ def test_bad_mode_raises(shells):
 
 def test_render_views_writes_images_and_metrics(shells, tmp_path, tiny_blender):
     from shells.datasets import load_dataset
-    from shells.render.views import render_views, resized_cameras
+    from shells.render.views import render_views
 
     data = load_dataset(tiny_blender, "test")  # 2 views, 16x16, cameras 3 units from the origin
     cfg = RenderConfig()
@@ -237,7 +237,7 @@ def test_render_views_writes_images_and_metrics(shells, tmp_path, tiny_blender):
     assert 0 < m["samples_per_pixel"] < m["samples_per_covered_pixel"] <= 16
     assert m["ms_per_frame"] > 0 and isinstance(m["psnr"], float) and len(m["psnr_per_view"]) == 2
     # a resized render: intrinsics scale with the image, so the sphere covers the same fraction
-    half = resized_cameras(data.cameras, 8, None)
+    half = data.cameras.resized(8, None)
     assert (half.width, half.height) == (8, 8)
     assert torch.allclose(half.fx, data.cameras.fx / 2) and torch.allclose(half.cx, data.cameras.cx / 2)
     m8 = render_views(SphereField(), half, None, cfg, "band", shells, data.aabb, out,

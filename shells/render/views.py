@@ -15,7 +15,6 @@ The run-level command around it (`shells-render RUN`) is `shells.pipeline.render
 
 from __future__ import annotations
 
-import dataclasses
 import statistics
 import time
 from pathlib import Path
@@ -29,7 +28,6 @@ from tqdm import tqdm
 
 from shells import distributed
 from shells.config import RenderConfig
-from shells.errors import InputError
 from shells.metrics import psnr, ssim
 from shells.render.frame import render_image
 from shells.render.shading import WHITE
@@ -49,21 +47,6 @@ def heatmap(spp: torch.Tensor, vmax: float) -> np.ndarray:  # [H, W] -> [H, W, 3
 
 def to_png(img: torch.Tensor) -> np.ndarray:  # [H, W, 3] float in [0, 1] -> uint8
     return np.round(img.clamp(0, 1).numpy() * 255.0).astype(np.uint8)
-
-
-def resized_cameras(cams: Any, width: int | None, height: int | None) -> Any:
-    """Cameras at another resolution: intrinsics scaled per axis (aspect kept if one is None)."""
-    if width is None and height is None:
-        return cams
-    if width is None:
-        width = max(1, round(cams.width * height / cams.height))
-    if height is None:
-        height = max(1, round(cams.height * width / cams.width))
-    if width < 1 or height < 1:
-        raise InputError(f"--width {width} --height {height}: must be positive")
-    sx, sy = width / cams.width, height / cams.height
-    return dataclasses.replace(cams, fx=cams.fx * sx, cx=cams.cx * sx, fy=cams.fy * sy,
-                               cy=cams.cy * sy, width=int(width), height=int(height))
 
 
 def render_views(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
