@@ -29,6 +29,8 @@ class SceneSpec:
     meta: dict[str, Any]  # the JSON "scene" record
     spheres: list[tuple[tuple[float, float, float], float]] = field(default_factory=list)
     # ^ opaque spheres (centre, radius)
+    boxes: list[tuple[tuple[float, float, float], tuple[float, float, float]]] = field(
+        default_factory=list)  # opaque axis-aligned boxes (centre, half extents)
     density: Any = None  # [G, G, G] float32 grid (index [z, y, x]) of the medium, or None
     sigma_scale: float = 0.0  # extinction = sigma_scale * density (1 / world units)
     medium_radius: float = 0.0  # the medium lives inside this sphere at the origin
@@ -117,6 +119,32 @@ def density_volume(density: np.ndarray,  # [G, G, G]
     box = mi.ScalarTransform4f().translate([-radius] * 3).scale(2 * radius)
     return {"type": "gridvolume", "grid": mi.VolumeGrid(density[..., None]),
             "to_world": box, "filter_type": "trilinear"}
+
+
+THIN_SPHERE = ((-0.25, 0.0, 0.0), 0.3)  # `thin-parts`: the sphere (centre, radius)
+THIN_ROD = ((0.35, 0.0, 0.0), (0.025, 0.025, 0.45))  # a rod 0.05 thick (centre, half extents)
+THIN_PLATE = ((0.2, 0.0, -0.45), (0.35, 0.3, 0.015))  # a plate 0.03 thick below them
+
+
+def _box(centre, half, rgb) -> dict[str, Any]:
+    import mitsuba as mi
+
+    return {"type": "cube",
+            "to_world": mi.ScalarTransform4f().translate(list(centre)).scale(list(half)),
+            "bsdf": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2,
+                     "diffuse_reflectance": {"type": "rgb", "value": list(rgb)}}}
+
+
+def thin_parts(rng: np.random.Generator) -> SceneSpec:
+    """`thin-parts`: a textured sphere beside a thin upright rod, over a thin plate: separate
+    objects, thin parts and content far from a centred initial sphere."""
+    (c, r), rod, plate = THIN_SPHERE, THIN_ROD, THIN_PLATE
+    ball = dict(_textured_ball(rng, r), center=list(c))
+    content = {"ball": ball, "rod": _box(*rod, (0.8, 0.15, 0.1)),
+               "plate": _box(*plate, (0.15, 0.45, 0.8)), **lights()}
+    return SceneSpec(content, {"name": "thin-parts", "sphere": [list(c), r],
+                               "rod": [list(v) for v in rod], "plate": [list(v) for v in plate]},
+                     spheres=[(c, r)], boxes=[rod, plate])
 
 
 def fuzzy_sphere(rng: np.random.Generator) -> SceneSpec:

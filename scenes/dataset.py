@@ -32,6 +32,7 @@ SCENES: dict[str, Builder] = {
     "sphere": content.sphere,
     "fuzzy-sphere": content.fuzzy_sphere,
     "core-fuzz": content.core_fuzz,
+    "thin-parts": content.thin_parts,
 }
 CAMERA_ANGLE_X = math.radians(40.0)  # horizontal field of view of every view
 AABB = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]  # scene box written to the JSON

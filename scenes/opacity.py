@@ -1,7 +1,7 @@
 """Exact per-pixel opacity (alpha) of a toy scene, computed deterministically.
 
 alpha = 1 - T, with T the transmittance along the ray averaged over an n x n stratified grid of
-points in the pixel: T = 0 when the ray hits an opaque sphere, else
+points in the pixel: T = 0 when the ray hits an opaque sphere or box, else
 exp(-∫ sigma_t ds) through the medium, integrated with the midpoint rule. sigma_t is evaluated
 by Mitsuba's own ``gridvolume`` plugin, so the medium is exactly the one the colour pass
 renders. This replaces a noisy Mitsuba pass (absorbing medium lit by a unit environment), which
@@ -29,15 +29,41 @@ def _sphere_hits(o: np.ndarray,  # [R, 3]
     return -b - h, -b + h
 
 
+def _box_hits(o: np.ndarray,  # [R, 3]
+              d: np.ndarray,  # [R, 3] unit
+              centre, half) -> tuple[np.ndarray, np.ndarray]:  # t0 [R], t1 [R]
+    """Entry and exit distances of rays through an axis-aligned box (nan where they miss)."""
+    lo = np.asarray(centre, np.float64) - np.asarray(half, np.float64)
+    hi = np.asarray(centre, np.float64) + np.asarray(half, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        a, b = (lo - o) * inv, (hi - o) * inv
+    t0 = np.nanmax(np.minimum(a, b), axis=1)
+    t1 = np.nanmin(np.maximum(a, b), axis=1)
+    miss = ~(t1 > t0)
+    return np.where(miss, np.nan, t0), np.where(miss, np.nan, t1)
+
+
+def first_hit(spec: SceneSpec,
+              o: np.ndarray,  # [R, 3]
+              d: np.ndarray,  # [R, 3] unit
+              ) -> tuple[np.ndarray, np.ndarray]:  # t [R] (inf: none), object id [R] (-1: none)
+    """The first opaque object each ray hits: ids 0.. for `spec.spheres`, then `spec.boxes`."""
+    t_stop, ids = np.full(len(o), np.inf), np.full(len(o), -1)
+    hits = [_sphere_hits(o, d, c, r) for c, r in spec.spheres]
+    hits += [_box_hits(o, d, c, h) for c, h in spec.boxes]
+    for k, (t0, _) in enumerate(hits):
+        closer = (t0 > 0) & (t0 < t_stop)
+        t_stop, ids = np.where(closer, t0, t_stop), np.where(closer, k, ids)
+    return t_stop, ids
+
+
 def ray_transmittance(spec: SceneSpec,
                       o: np.ndarray,  # [R, 3]
                       d: np.ndarray,  # [R, 3] unit directions
                       n_steps: int = 128) -> np.ndarray:  # [R] transmittance in [0, 1]
     """Transmittance of each ray through the scene to infinity (cameras are outside it)."""
-    t_stop = np.full(len(o), np.inf)
-    for center, radius in spec.spheres:
-        t0, _ = _sphere_hits(o, d, center, radius)
-        t_stop = np.where(t0 > 0, np.fmin(t_stop, t0), t_stop)
+    t_stop, _ = first_hit(spec, o, d)
     trans = np.where(np.isfinite(t_stop), 0.0, 1.0)
     if spec.density is None:
         return trans

@@ -152,9 +152,12 @@ def train_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="run directory (created)")
     p.add_argument("--iters", type=int, default=None, help="training steps (overrides config)")
     p.add_argument("--config", default=None, help="JSON config file (see shells/config.py)")
-    p.add_argument("--preset", choices=["auto", "toy", "paper"], default="auto",
-                   help="base configuration: 'toy' (small field, CPU), 'paper' (paper sizes); "
-                        "'auto' picks toy on CPU and paper on CUDA (default)")
+    p.add_argument("--preset", choices=["auto", "toy", "object", "paper"], default="auto",
+                   help="base configuration: 'toy' (small field, the 64x64 toy scenes), "
+                        "'object' (real objects on a CPU: empty-space skipping, hash grid "
+                        "sized from the images), 'paper' (paper sizes, GPU); 'auto' (default) "
+                        "picks paper on CUDA, else toy for images up to 96 px a side and "
+                        "object above")
     p.add_argument("--device", choices=["cpu", "cuda"], default=None,
                    help="torch device (default: cuda if available)")
     p.add_argument("--downscale", type=int, default=1, help="downscale images by this factor")
@@ -163,19 +166,21 @@ def train_parser() -> argparse.ArgumentParser:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from shells.config import Config, load_config, toy_config
+    from shells.config import Config, load_config
     from shells.device import torch_device
-    from shells.training import train
+    from shells.training import preset_config, train
 
     device = torch_device(args.device)
-    preset = args.preset
-    if preset == "auto":
-        preset = "paper" if device.type == "cuda" else "toy"
-    cfg = load_config(args.config, toy_config() if preset == "toy" else Config())
     if args.data is None and not args.resume:
         raise InputError("--data DIR is required (the data set to train on)")
     if args.downscale < 1:
         raise InputError(f"--downscale {args.downscale}: must be at least 1")
+    if args.iters is not None:  # checked before the data set is read for the preset
+        Config().update({"train": {"iters": args.iters}}, "--iters")
+    # on --resume the run's own config is used; the preset matters for new runs only
+    base = Config() if args.resume else preset_config(args.preset, args.data, args.downscale,
+                                                      device)[0]
+    cfg = load_config(args.config, base)
     summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
                     resume=args.resume, iters=args.iters)
     if "test" in summary and distributed.launched_rank() == 0:

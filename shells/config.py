@@ -65,6 +65,19 @@ class TrainConfig:
     shards: int = 1  # a step's rays are drawn in this many shards, each from its own random
     # stream; N data-parallel processes take shards r, r + N, ... (N must divide it); the
     # default becomes the number of processes when a run starts under torchrun
+    sampler: str = "box"  # where a ray's samples go: "box" = its whole chord through the scene
+    # box; "occupancy" = the span between the first and last occupied cell of an occupancy grid
+    # rebuilt from the field (empty-space skipping; rays crossing no occupied cell are not
+    # sampled, and a step draws rays until batch_rays of them cross one)
+    occ_resolution: int = 64  # "occupancy": grid cells per axis over the scene box
+    occ_k: float = 5.0  # "occupancy": occupied where |f| < half cell diagonal + occ_k * s
+    occ_every: int = 32  # "occupancy": steps between grid rebuilds
+    occ_warmup: int = 256  # "occupancy": steps with whole chords before the first grid build
+    reg_points: int = 4096  # points per step for the Eikonal, normal and smoothness terms
+    # (half of them ray samples, half uniform in the box)
+    coarse_to_fine_iters: int = 0  # Neuralangelo: the hash levels are switched on one by one
+    # over this many steps (0 = all levels from the start)
+    coarse_to_fine_start: int = 4  # levels active at step 0 when coarse_to_fine_iters > 0
     n_samples: int = 64  # uniform samples per ray inside the scene box
     n_importance: int = 64  # extra samples per ray drawn from the coarse weights (0 = off)
     lr: float = 1e-2  # Adam learning rate for hash-grid tables
@@ -296,6 +309,10 @@ _RULES = [_rule(k, *r) for k, r in [
                                             "kernel_smooth_weight", "normal_weight",
                                             "smooth_eps", "eval_max_views")],
     ("train.fd_eps", _positive()),
+    ("train.sampler", ((lambda v: v in ("box", "occupancy")), "must be 'box' or 'occupancy'")),
+    *[(f"train.{k}", _at_least(1)) for k in ("occ_resolution", "occ_every", "reg_points",
+                                            "coarse_to_fine_start")],
+    *[(f"train.{k}", _at_least(0)) for k in ("occ_k", "occ_warmup", "coarse_to_fine_iters")],
     ("shell.resolution", _at_least(8)),
     *[(f"shell.{k}", _at_least(0)) for k in ("steps", "dilate_curvature", "erode_curvature",
                                             "beta_d", "sigma_min", "beta_e")],
@@ -337,6 +354,34 @@ def toy_config() -> Config:
     # a short stage 2 at 3x / 10x the paper-preset learning rates (same BENCHMARKS.md section)
     cfg.finetune = FinetuneConfig(iters=500, batch_rays=1024, lr=3e-3, lr_mlp=1e-3,
                                   checkpoint_every=250, log_every=25)
+    return cfg
+
+
+def finest_resolution(extent: float, focal_px: float, distance: float) -> int:
+    """Finest hash-grid resolution for images of ``focal_px`` pixels of focal length seen from
+    ``distance``: a cell of half the pixel footprint (distance / focal_px) at the object, over
+    the box's largest ``extent``, rounded up to a power of two (at least 64)."""
+    cells = 2.0 * extent * focal_px / max(distance, 1e-6)
+    return max(64, 2 ** math.ceil(math.log2(max(cells, 1.0))))
+
+
+def object_config(extent: float, focal_px: float, distance: float) -> Config:
+    """Real objects on the CPU (NeRF-synthetic, photos; 2 cores), sized from the data.
+
+    The toy preset's schedule and shells with stage 1's empty-space skipping (``sampler``
+    "occupancy") and a hash grid whose finest level resolves half a pixel at the cameras'
+    distance (`finest_resolution`; 256 for lego at 1/8, 512 at 1/4), one level per doubling
+    above the toy preset's 8 levels and a table of 2^17 entries per doubling 2^1 larger. The
+    step count grows with the finest resolution (see BENCHMARKS.md, "Issue 13")."""
+    cfg = toy_config()
+    res = finest_resolution(extent, focal_px, distance)
+    doublings = max(0, int(round(math.log2(res / 256))))
+    cfg.field = dataclasses.replace(cfg.field, max_resolution=res, n_levels=8 + doublings,
+                                    log2_hashmap_size=min(21, 18 + doublings))
+    cfg.train = dataclasses.replace(cfg.train, sampler="occupancy", iters=3000 * (1 + doublings),
+                                    reg_points=2048, checkpoint_every=500, log_every=50)
+    cfg.shell = dataclasses.replace(cfg.shell, resolution=256)
+    cfg.check("object preset")
     return cfg
 
 

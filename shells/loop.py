@@ -139,9 +139,18 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
              device: torch.device,
              resume: dict[str, Any] | None = None,  # checkpoint dict to continue from
              stop_at: int | None = None,  # end after this step (kill/resume tests)
-             progress: bool = True) -> dict[str, Any]:
+             progress: bool = True,
+             before_step: Callable[[int], None] | None = None,
+             state: Any = None,
+             ) -> dict[str, Any]:
     """Run steps [start, end) of the schedule; returns the summary (step, seconds, rays_per_s,
-    last, finished). ``cfg`` is what the checkpoints store with the field."""
+    samples_per_s, last, finished). ``cfg`` is what the checkpoints store with the field.
+
+    ``before_step(k)`` runs on every rank before step k's shards (a stage's schedule of its
+    own, e.g. rebuilding an occupancy grid); ``state`` (an object with ``state_dict`` /
+    ``load_state_dict``, e.g. that grid) is stored in the checkpoints and restored on resume.
+    A shard's logs may report ``rays`` and ``samples`` it used (else ``rays_per_step`` /
+    ``shards`` rays are counted)."""
     w = distributed.world(device)
     _check_shards(sched.name, sched.shards, w)
     start = 0
@@ -152,6 +161,8 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
                              f"--iters to continue")
         field.load_state_dict(resume["field"])
         opt.load_state_dict(resume["optimizer"])
+        if state is not None and resume.get("extra") is not None:
+            state.load_state_dict(resume["extra"])
         if w.main:
             truncate_log(log, start)
     mine = list(range(w.rank, sched.shards, w.size))  # this rank's shards
@@ -170,10 +181,13 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
     bar = tqdm(total=sched.iters, initial=start, disable=not (progress and w.main),
                desc=sched.name, unit="step", dynamic_ncols=True)
     t0, last, rays_s, saved = time.perf_counter(), None, 0.0, start
+    rays, samples = 0.0, 0.0
     field.train()
     k = start
     try:
         for k in range(start, end):
+            if before_step is not None:
+                before_step(k)
             gens = [step_generator(sched.seed, k, device, j) for j in mine]
             factor = lr_factor(k, sched.iters, sched.warmup, sched.final)
             for g in opt.param_groups:
@@ -185,16 +199,19 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
             last = distributed.mean_of(last, device)
             done = k + 1
             elapsed = time.perf_counter() - t0
-            rays_s = sched.rays_per_step * (done - start) / elapsed
+            rays += last["rays"] * sched.shards if "rays" in last else sched.rays_per_step
+            samples += last.get("samples", 0.0) * sched.shards
+            rays_s = rays / elapsed
             bar.update(1)
             bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
                             rays_s=f"{rays_s:.0f}")
             if w.main and (done % sched.log_every == 0 or done == end):
                 append_log(log, {"step": done, **last, "rays_per_s": rays_s,
-                                 "elapsed_s": elapsed})
+                                 "samples_per_s": samples / elapsed, "elapsed_s": elapsed})
             if done % sched.checkpoint_every == 0 or done == end:
                 if w.main:
-                    save_checkpoint(checkpoint, field, opt, done, cfg)
+                    save_checkpoint(checkpoint, field, opt, done, cfg,
+                                    None if state is None else state.state_dict())
                 saved = done
     except KeyboardInterrupt:
         raise Interrupted(f"{sched.name} interrupted at step {k + 1}; {_intact(checkpoint, saved)}",
@@ -209,8 +226,10 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
     finally:
         bar.close()
     field.eval()
-    return {"step": end, "seconds": time.perf_counter() - t0, "rays_per_s": rays_s,
-            "last": last, "finished": end == sched.iters}
+    seconds = time.perf_counter() - t0
+    return {"step": end, "seconds": seconds, "rays_per_s": rays_s,
+            "samples_per_s": samples / max(seconds, 1e-9), "last": last,
+            "finished": end == sched.iters}
 
 
 def _accumulate(model: torch.nn.Module, gens: list[torch.Generator], field: ShellField,

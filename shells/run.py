@@ -101,10 +101,13 @@ def read_run(run: RunDir) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 
 def save_checkpoint(path: Path, field: ShellField, opt: torch.optim.Optimizer, step: int,
-                    cfg: Config) -> None:
-    """Field, optimiser, step and config in one file, written atomically."""
+                    cfg: Config, extra: dict[str, Any] | None = None) -> None:
+    """Field, optimiser, step, config and a stage's extra state (its occupancy grid) in one
+    file, written atomically."""
     state = {"step": step, "field": field.state_dict(), "optimizer": opt.state_dict(),
              "config": cfg.to_dict(), "aabb": field.aabb.detach().cpu()}
+    if extra is not None:
+        state["extra"] = extra
     atomic_write(path, lambda p: torch.save(state, p))
 
 

@@ -4,6 +4,15 @@ Loss (Eq. 8-12): L = L1 colour + w_eik (|grad f| - 1)^2 + w_smooth |log s(x) - l
 + w_normal |n(x) - grad f / |grad f||, n ~ N(0, eps^2), grad f by central differences.
 The regularisers are evaluated on a subset of the ray samples plus uniform points in the box.
 
+Sampling (`TrainConfig.sampler`): "box" samples every ray over its whole chord through the
+scene box; "occupancy" keeps an occupancy grid of the field (`shells.render.volume.SpanGrid`,
+rebuilt every ``occ_every`` steps after ``occ_warmup``, stored in the checkpoints), samples each
+ray only over the span of occupied cells it crosses and skips the rays that cross none. Those
+rays cost nothing and still enter the loss (as background), and a step draws pixels until
+``batch_rays`` of them cross an occupied cell, so the number of field samples per step stays
+fixed while the number of rays grows as the grid empties. Coarse-to-fine (Neuralangelo,
+``coarse_to_fine_iters``): the hash levels are switched on one by one.
+
 The steps run in `shells.loop.optimise` (schedule, progress, logs, checkpoints, exact resume);
 the run directory is read and written through `shells.run`.
 """
@@ -16,16 +25,43 @@ from typing import Any
 import torch
 
 from shells import distributed
-from shells.config import Config, TrainConfig
-from shells.datasets import Dataset, load_dataset
+from shells.config import Config, TrainConfig, object_config, toy_config
+from shells.datasets import Dataset, load_dataset, read_frames
 from shells.errors import InputError, write_json
 from shells.fields.network import ShellField
 from shells.loop import Schedule, join, make_optimizer, optimise, psnr_of
 from shells.metrics import psnr
-from shells.render.volume import render_volume_image, render_volume_rays
+from shells.render.volume import SpanGrid, render_volume_image, render_volume_rays
 from shells.run import RunDir, read_checkpoint, read_run, write_run
 
-REG_POINTS = 4096  # points per step for the Eikonal, normal and smoothness terms
+MAX_DRAWS = 8  # "occupancy" sampler: at most this many rounds of pixels drawn per shard
+
+
+PRESETS = ("auto", "toy", "object", "paper")
+TOY_MAX_SIDE = 96  # "auto" on the CPU: images up to this many pixels a side get the toy preset
+
+
+def preset_config(name: str, data_dir: str | Path, downscale: int,
+                  device: torch.device) -> tuple[Config, str]:
+    """The base config of ``shells-train --preset NAME`` and the preset's resolved name.
+
+    "auto": "paper" on CUDA; on the CPU "toy" for images of at most TOY_MAX_SIDE pixels a side
+    (the toy scenes), else "object", sized from the training cameras (`object_config`)."""
+    if name not in PRESETS:
+        raise InputError(f"--preset {name}: expected one of {list(PRESETS)}")
+    if name == "paper" or (name == "auto" and device.type == "cuda"):
+        return Config(), "paper"
+    if name == "toy":
+        return toy_config(), "toy"
+    frames = read_frames(data_dir, "train")
+    cams = frames.cameras.downscaled(downscale)
+    if name == "auto" and max(cams.width, cams.height) <= TOY_MAX_SIDE:
+        return toy_config(), "toy"
+    box = frames.aabb.double()
+    centre = 0.5 * (box[0] + box[1])
+    distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
+    focal = float(cams.fx.double().median())
+    return object_config(float((box[1] - box[0]).max()), focal, distance), "object"
 
 
 def build_field(cfg: Config, aabb: torch.Tensor, device: torch.device) -> ShellField:
@@ -58,26 +94,68 @@ def regularisers(field: ShellField,
 
 def reg_points(field: ShellField, ray_points: torch.Tensor, n: int,
                gen: torch.Generator) -> torch.Tensor:
-    """Half from the ray samples (where the image loss acts), half uniform in the box."""
+    """Half from the ray samples (where the image loss acts), half uniform in the box (all
+    uniform when there are no ray samples)."""
     flat = ray_points.detach().reshape(-1, 3)
-    pick = torch.randint(0, flat.shape[0], (n // 2,), generator=gen, device=flat.device)
+    n_ray = n // 2 if flat.shape[0] else 0
+    pick = torch.randint(0, max(1, flat.shape[0]), (n_ray,), generator=gen, device=flat.device)
     lo, hi = field.aabb[0], field.aabb[1]
-    uni = lo + (hi - lo) * torch.rand(n - n // 2, 3, generator=gen, device=flat.device)
+    uni = lo + (hi - lo) * torch.rand(n - n_ray, 3, generator=gen, device=flat.device)
     return torch.cat([flat[pick], uni])
+
+
+def draw_pixels(data: Dataset, grid: SpanGrid, n_rays: int, spp: int, gen: torch.Generator,
+                ) -> tuple[torch.Tensor, ...]:
+    """Pixels drawn in rounds of ``n_rays / spp`` until that many cross an occupied cell (at
+    most MAX_DRAWS rounds), cut after the pixel that completes the count.
+
+    Returns idx [P], origins, dirs [P * spp, 3], near, far, hit [P * spp] (the rays' spans)
+    and crosses [P] (the pixel has a ray that crosses an occupied cell)."""
+    want = max(1, n_rays // spp)
+    parts, got = [], 0
+    for _ in range(MAX_DRAWS):
+        idx, o, d = data.sample_pixel_rays(n_rays, spp, gen)
+        near, far, hit = grid.spans(o, d)
+        crosses = hit.view(-1, spp).any(1)
+        count = crosses.cumsum(0)
+        if got + int(count[-1]) >= want:
+            cut = int(torch.searchsorted(count, want - got)) + 1  # pixels kept
+            r = cut * spp
+            parts.append((idx[:cut], o[:r], d[:r], near[:r], far[:r], hit[:r], crosses[:cut]))
+            break
+        parts.append((idx, o, d, near, far, hit, crosses))
+        got += int(count[-1])
+    return tuple(torch.cat(p) for p in zip(*parts))
 
 
 def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: TrainConfig,
                 background: torch.Tensor, gen: torch.Generator,
+                grid: SpanGrid | None = None,
                 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Loss of one shard of a step (``batch_rays / shards`` random rays drawn with ``gen``) and
-    its scalar logs."""
+    """Loss of one shard of a step and its scalar logs. "box" sampler (``grid`` None):
+    ``batch_rays / shards`` random rays drawn with ``gen``; "occupancy": `draw_pixels`."""
     spp = tc.pixel_samples
-    idx, o, d = data.sample_pixel_rays(tc.batch_rays // tc.shards, spp, gen)
+    n_rays = tc.batch_rays // tc.shards
+    if grid is None:
+        idx, o, d = data.sample_pixel_rays(n_rays, spp, gen)
+        out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, background, gen)
+        pred = out["color"].reshape(len(idx), spp, 3).mean(1)  # box filter
+        rendered = len(o)
+        points = out["points"]
+    else:
+        idx, o, d, near, far, hit, crosses = draw_pixels(data, grid, n_rays, spp, gen)
+        m = crosses.repeat_interleave(spp)  # the rays of the pixels that cross
+        pred = background.expand(len(idx), 3).clone()
+        rendered = int(m.sum())
+        points = o.new_zeros(0, 3)
+        if rendered:
+            out = render_volume_rays(field, o[m], d[m], tc.n_samples, tc.n_importance,
+                                     background, gen, span=(near[m], far[m], hit[m]))
+            pred[crosses] = out["color"].reshape(-1, spp, 3).mean(1)  # box filter
+            points = out["points"]
     target = pixels[idx]
-    out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, background, gen)
-    pred = out["color"].reshape(len(idx), spp, 3).mean(1)  # box filter
     color = (pred - target).abs().mean()
-    reg = regularisers(field, reg_points(field, out["points"], REG_POINTS // tc.shards, gen),
+    reg = regularisers(field, reg_points(field, points, tc.reg_points // tc.shards, gen),
                        tc.fd_eps, tc.smooth_eps, gen)
     loss = (color + tc.eikonal_weight * reg["eikonal"] + tc.kernel_smooth_weight * reg["smooth"]
             + tc.normal_weight * reg["normal"])
@@ -85,16 +163,45 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
         mse = ((pred.clamp(0, 1) - target) ** 2).mean().item()
     return loss, {"loss": loss.item(), "color_l1": color.item(),
                   "eikonal": reg["eikonal"].item(), "normal": reg["normal"].item(),
-                  "smooth": reg["smooth"].item(), "psnr": psnr_of(mse)}
+                  "smooth": reg["smooth"].item(), "psnr": psnr_of(mse),
+                  "rays": float(len(idx) * spp),
+                  "samples": float(rendered * (tc.n_samples + tc.n_importance))}
+
+
+def active_levels(step: int, tc: TrainConfig, n_levels: int) -> int | None:
+    """Hash levels in use at ``step`` (coarse-to-fine); None = all."""
+    if tc.coarse_to_fine_iters <= 0 or step >= tc.coarse_to_fine_iters:
+        return None
+    start = min(tc.coarse_to_fine_start, n_levels)
+    return min(n_levels, start + step * (n_levels - start) // tc.coarse_to_fine_iters)
+
+
+def before_step(field: ShellField, grid: SpanGrid | None, tc: TrainConfig, step: int) -> None:
+    """Stage 1's own schedule: the active hash levels, then the occupancy-grid rebuilds."""
+    field.active_levels = active_levels(step, tc, field.cfg.n_levels)
+    if grid is not None and step >= tc.occ_warmup and (step - tc.occ_warmup) % tc.occ_every == 0:
+        grid.update(field)
 
 
 # ---------------------------------------------------------------------------------------------
 # Evaluation and the stage
 # ---------------------------------------------------------------------------------------------
 
+def stage1_grid(ckpt: dict[str, Any], field: ShellField, cfg: Config) -> SpanGrid | None:
+    """The occupancy grid stored in a stage-1 checkpoint of the "occupancy" sampler (None for
+    "box"): what stage 1's own renderer (`evaluate`) samples with."""
+    if cfg.train.sampler != "occupancy":
+        return None
+    grid = SpanGrid(field.aabb, cfg.train.occ_resolution, cfg.train.occ_k)
+    grid.load_state_dict(ckpt.get("extra") or {})
+    return grid
+
+
 def evaluate(field: ShellField, data: Dataset, tc: TrainConfig, max_views: int = 0,
-             device: torch.device | None = None) -> dict[str, Any]:
-    """Full-ray test PSNR (deterministic sample placement) over the views of `data`."""
+             device: torch.device | None = None, grid: SpanGrid | None = None,
+             ) -> dict[str, Any]:
+    """Full-ray test PSNR (deterministic sample placement) over the views of `data`; with
+    ``grid``, each ray is sampled on its occupied span as in training."""
     device = device or field.aabb.device
     bg = torch.tensor(data.background, device=device)
     n = len(data.cameras) if max_views <= 0 else min(max_views, len(data.cameras))
@@ -102,7 +209,7 @@ def evaluate(field: ShellField, data: Dataset, tc: TrainConfig, max_views: int =
     for i in range(n):
         o, d = data.cameras.pixel_rays(i, tc.pixel_samples)
         img = render_volume_image(field, o.to(device), d.to(device), tc.n_samples,
-                                  tc.n_importance, bg)
+                                  tc.n_importance, bg, grid=grid)
         pred = img["color"].reshape(-1, tc.pixel_samples, 3).mean(1)  # box filter
         pred = pred.reshape(data.images.shape[1:]).cpu()
         scores.append(psnr(pred.numpy(), data.images[i].numpy()))
@@ -139,10 +246,14 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
         write_run(run, data_dir, downscale, str(device), cfg)
     pixels = data.images.reshape(-1, 3).to(device)
     background = torch.tensor(cfg.data.background, device=device, dtype=torch.float32)
+    grid = (SpanGrid(field.aabb, tc.occ_resolution, tc.occ_k)
+            if tc.sampler == "occupancy" else None)
     summary = optimise(field, opt, cfg, Schedule.of("stage 1", tc),
-                       lambda gen: stage1_step(field, data, pixels, tc, background, gen),
+                       lambda gen: stage1_step(field, data, pixels, tc, background, gen, grid),
                        run.checkpoint("stage1"), run.log("stage1"), device, resume=ckpt,
-                       stop_at=stop_at, progress=progress)
+                       stop_at=stop_at, progress=progress,
+                       before_step=lambda k: before_step(field, grid, tc, k), state=grid)
+    field.active_levels = None  # what the checkpoint's users evaluate: every level
     if summary["finished"] and evaluate_test and w.main:
         try:
             test = load_dataset(data_dir, "test", downscale=downscale,
@@ -150,6 +261,6 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
         except InputError:
             test = None  # a data set without a test split: nothing to score
         if test is not None:
-            summary["test"] = evaluate(field, test, tc, tc.eval_max_views, device)
+            summary["test"] = evaluate(field, test, tc, tc.eval_max_views, device, grid)
         write_json(run.summary("stage1"), summary)
     return summary

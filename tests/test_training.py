@@ -23,27 +23,36 @@ def test_lr_schedule_hand_worked():
     assert lr_factor(100, 100, 10, 0.1) == pytest.approx(0.1)
 
 
-def _tiny_config():
+def _tiny_config(sampler: str = "box"):
     cfg = toy_config()
     cfg.field.n_levels, cfg.field.log2_hashmap_size, cfg.field.max_resolution = 4, 12, 64
     cfg.train.iters, cfg.train.batch_rays = 6, 64
     cfg.train.n_samples, cfg.train.n_importance = 16, 8
     cfg.train.checkpoint_every, cfg.train.log_every, cfg.train.warmup_iters = 3, 1, 2
+    if sampler == "occupancy":  # grid rebuilt at steps 2 and 4: the step-3 checkpoint holds
+        # the grid of step 2, which the resume must restore; coarse-to-fine over the run too
+        cfg.update({"train": {"sampler": "occupancy", "occ_warmup": 2, "occ_every": 2,
+                              "occ_resolution": 16, "coarse_to_fine_iters": 5,
+                              "coarse_to_fine_start": 2}})
     return cfg
 
 
-def test_kill_and_resume_matches_uninterrupted(tiny_blender, tmp_path):
+@pytest.mark.parametrize("sampler", ["box", "occupancy"])
+def test_kill_and_resume_matches_uninterrupted(tiny_blender, tmp_path, sampler):
     cpu = torch.device("cpu")
-    train(tiny_blender, tmp_path / "a", _tiny_config(), cpu, progress=False, evaluate_test=False)
+    cfg = lambda: _tiny_config(sampler)  # noqa: E731
+    train(tiny_blender, tmp_path / "a", cfg(), cpu, progress=False, evaluate_test=False)
     # "killed" after step 4: the last checkpoint is from step 3, so steps 4-6 are redone
-    train(tiny_blender, tmp_path / "b", _tiny_config(), cpu, progress=False, stop_at=4,
+    train(tiny_blender, tmp_path / "b", cfg(), cpu, progress=False, stop_at=4,
           evaluate_test=False)
     ckpt = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
     assert ckpt["step"] == 4
+    if sampler == "occupancy":
+        assert ckpt["extra"]["occ"].shape == (16, 16, 16)
     # simulate the crash before the step-4 checkpoint: roll back to an earlier state
-    train(tiny_blender, tmp_path / "c", _tiny_config(), cpu, progress=False, stop_at=3,
+    train(tiny_blender, tmp_path / "c", cfg(), cpu, progress=False, stop_at=3,
           evaluate_test=False)
-    train(tiny_blender, tmp_path / "c", _tiny_config(), cpu, progress=False, resume=True,
+    train(tiny_blender, tmp_path / "c", cfg(), cpu, progress=False, resume=True,
           evaluate_test=False)
     fa, _ = load_field(tmp_path / "a")
     fc, _ = load_field(tmp_path / "c")
@@ -51,6 +60,77 @@ def test_kill_and_resume_matches_uninterrupted(tiny_blender, tmp_path):
         torch.testing.assert_close(pa, pc, rtol=0, atol=0, msg=name)
     steps = [json.loads(ln)["step"] for ln in (tmp_path / "c" / "train_log.jsonl").open()]
     assert steps == [1, 2, 3, 4, 5, 6]  # one record per step, none duplicated by the resume
+
+
+def test_occupancy_steps_draw_until_the_batch_crosses_the_grid(tiny_blender):
+    """The "occupancy" sampler: pixels are drawn until batch_rays of them cross an occupied
+    cell; the rest cost no samples but enter the loss."""
+    from shells.datasets import load_dataset
+    from shells.render.volume import SpanGrid
+    from shells.training import build_field, draw_pixels, stage1_step
+
+    cfg = _tiny_config("occupancy")
+    data = load_dataset(tiny_blender, "train")
+    field = build_field(cfg, data.aabb, torch.device("cpu"))
+    grid = SpanGrid(field.aabb, 16, cfg.train.occ_k)
+    grid.update(field)  # the initial sphere of radius 0.5: a shell of cells
+    assert 0.0 < grid.fraction < 0.7
+    gen = torch.Generator().manual_seed(0)
+    idx, o, d, near, far, hit, crosses = draw_pixels(data, grid, 64, 1, gen)
+    assert int(crosses.sum()) == 64 and bool(crosses[-1])  # cut after the 64th crossing pixel
+    assert len(idx) > 64  # some drawn pixels crossed nothing
+    assert torch.equal(crosses, hit)  # one ray per pixel
+    pixels = data.images.reshape(-1, 3)
+    loss, logs = stage1_step(field, data, pixels, cfg.train, torch.ones(3),
+                             torch.Generator().manual_seed(0), grid)
+    assert logs["rays"] == len(idx)
+    assert logs["samples"] == 64 * (cfg.train.n_samples + cfg.train.n_importance)
+    loss.backward()
+    assert field.rad_mlp[0].weight.grad.abs().sum() > 0  # (hash weights start at zero)
+
+
+def test_coarse_to_fine_switches_levels_on():
+    from shells.fields.network import ShellField
+    from shells.training import active_levels
+
+    cfg = _tiny_config()
+    cfg.update({"train": {"coarse_to_fine_iters": 10, "coarse_to_fine_start": 2}})
+    assert [active_levels(k, cfg.train, 4) for k in (0, 4, 5, 9, 10)] == [2, 2, 3, 3, None]
+    field = ShellField(cfg.field, torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    with torch.no_grad():  # hash features and the weights reading them (zero at init) random
+        field.grid.params.uniform_(-1, 1)
+        field.geo_mlp[0].weight[:, 3:].normal_()
+    x = torch.rand(50, 3) * 2 - 1
+    full = field.geometry(x)["sdf"]
+    field.active_levels = 2
+    part = field.geometry(x)["sdf"]
+    F = cfg.field.n_features_per_level
+    w = field.geo_mlp[0].weight.detach().clone()
+    with torch.no_grad():  # the same as zeroing the weights that read levels 2 and 3
+        field.geo_mlp[0].weight[:, 3 + 2 * F:] = 0
+        field.active_levels = None
+        torch.testing.assert_close(field.geometry(x)["sdf"], part)
+        field.geo_mlp[0].weight.copy_(w)
+    assert not torch.allclose(full, part)
+
+
+def test_auto_preset_follows_the_image_size(tmp_path):
+    from tests.conftest import write_tiny_blender
+    from shells.training import preset_config
+
+    cpu = torch.device("cpu")
+    small = write_tiny_blender(tmp_path / "small", res=64)
+    big = write_tiny_blender(tmp_path / "big", res=128)
+    assert preset_config("auto", small, 1, cpu)[1] == "toy"
+    cfg, name = preset_config("auto", big, 1, cpu)
+    assert name == "object" and cfg.train.sampler == "occupancy"
+    # focal 128 / 2 / tan(0.3) = 206 px at distance 3.1 over a box of 2: 2 * 2 * 206 / 3.1 =
+    # 266 cells -> 512; at downscale 2, 133 -> 256
+    assert cfg.field.max_resolution == 512
+    assert preset_config("auto", big, 2, cpu)[0].field.max_resolution == 256
+    assert preset_config("auto", big, 2, cpu)[1] == "toy"  # 64 px a side
+    assert preset_config("object", big, 2, cpu)[0].field.max_resolution == 256
+    assert preset_config("paper", big, 1, cpu)[1] == "paper"
 
 
 def test_train_cli_errors(tiny_blender, tmp_path, capsys):

@@ -42,3 +42,109 @@ def test_sample_pdf_concentrates_on_weight():
     assert ((s >= 2.0) & (s <= 3.0)).all()
     u = sample_pdf(t, torch.ones(1, 4), near, far, 8)  # uniform pdf, centred u: (i + 0.5) / 8 * 4
     torch.testing.assert_close(u, ((torch.arange(8) + 0.5) / 2).unsqueeze(0))
+
+
+# -- empty-space skipping and the one-evaluation-per-sample renderer (issue 13) ----------------
+
+class _SphereField(torch.nn.Module):
+    """f = |x - c| - r, constant kernel s, colour from the position: an exact SDF."""
+
+    def __init__(self, r=0.4, s=0.01, c=(0.3, 0.0, 0.0)):
+        super().__init__()
+        self.register_buffer("aabb", BOX.clone())
+        self.r, self.s = r, s
+        self.c = torch.tensor(c)
+        self.w = torch.nn.Parameter(torch.tensor(1.0))  # a parameter for the gradient checks
+
+    def geometry(self, x):
+        v = x - self.c.to(x)
+        n = v.norm(dim=-1)
+        return {"sdf": self.w * (n - self.r), "s": torch.full_like(n, self.s),
+                "normal": v / n.clamp_min(1e-9)[:, None]}
+
+    def forward(self, x, d):
+        g = self.geometry(x)
+        g["rgb"] = torch.sigmoid(self.w * x + d.sum(-1, keepdim=True))
+        return g
+
+
+def test_span_grid_spans_contain_the_surface():
+    from shells.render.volume import SpanGrid
+
+    f = _SphereField()
+    grid = SpanGrid(BOX, 32, k=5.0)
+    o, d = _rays(400, seed=0)
+    near, far, hit = grid.spans(o, d)  # before the first update: the whole box chord
+    n0, f0, h0 = ray_aabb(o, d, BOX)
+    assert torch.equal(near, n0) and torch.equal(far, f0) and torch.equal(hit, h0)
+    grid.update(f)
+    assert 0.0 < grid.fraction < 0.25
+    near, far, hit = grid.spans(o, d)
+    # exact entry / exit of the sphere: both inside the span of every ray that hits it
+    oc = o - f.c
+    b = (oc * d).sum(-1)
+    disc = b * b - ((oc * oc).sum(-1) - f.r ** 2)
+    hits_sphere = disc > 0
+    t0, t1 = -b - disc.clamp_min(0).sqrt(), -b + disc.clamp_min(0).sqrt()
+    assert hits_sphere.sum() > 50
+    assert hit[hits_sphere].all()
+    assert (near[hits_sphere] <= t0[hits_sphere]).all()
+    assert (far[hits_sphere] >= t1[hits_sphere]).all()
+    # rays passing far from the sphere (beyond the occupied margin) get no span
+    dist = (oc - b[:, None] * d).norm(dim=-1)  # closest approach to the centre
+    far_away = ~hits_sphere & (dist > f.r + 5 * f.s + 4 * float(grid.cell.norm())) & h0
+    assert far_away.sum() > 20
+    assert not hit[far_away].any()
+    # spans are never longer than the chord
+    assert (near >= n0 - 1e-6).all() and (far <= f0 + 1e-6).all()
+
+
+def _rays(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    o = torch.randn(n, 3, generator=g)
+    o = 3.0 * o / o.norm(dim=-1, keepdim=True)
+    target = 0.8 * (torch.rand(n, 3, generator=g) * 2 - 1)
+    d = target - o
+    return o, d / d.norm(dim=-1, keepdim=True)
+
+
+def _two_pass_reference(field, o, d, n_samples, n_importance, bg, gen):
+    """The renderer before issue 13: a geometry pass without gradient places the fine samples,
+    then the field is evaluated again at all samples."""
+    from shells.fields.neus import composite, neus_alpha
+
+    near, far, hit = ray_aabb(o, d, field.aabb)
+    t = stratified_samples(near, far, n_samples, gen)
+    with torch.no_grad():
+        pts = o[:, None] + t[..., None] * d[:, None]
+        geo = field.geometry(pts.reshape(-1, 3))
+        cos = (geo["normal"].reshape(*t.shape, 3) * d[:, None]).sum(-1)
+        delta = torch.diff(section_edges(t, near, far), dim=-1)
+        alpha = neus_alpha(geo["sdf"].reshape(t.shape), geo["s"].reshape(t.shape), cos, delta)
+        _, w, _ = composite(alpha, torch.zeros(*t.shape, 3), bg)
+        t, _ = torch.sort(torch.cat([t, sample_pdf(t, w, near, far, n_importance, gen)], -1), -1)
+    delta = torch.diff(section_edges(t, near, far), dim=-1)
+    R, S = t.shape
+    pts = o[:, None] + t[..., None] * d[:, None]
+    dd = d[:, None].expand(R, S, 3)
+    out = field(pts.reshape(-1, 3), dd.reshape(-1, 3))
+    cos = (out["normal"].reshape(R, S, 3) * dd).sum(-1)
+    alpha = neus_alpha(out["sdf"].reshape(R, S), out["s"].reshape(R, S), cos, delta) * hit[:, None]
+    return composite(alpha, out["rgb"].reshape(R, S, 3), bg)[0]
+
+
+def test_single_evaluation_matches_the_two_pass_renderer_forward_and_backward():
+    from shells.render.volume import render_volume_rays
+
+    f = _SphereField().double()
+    f.c = f.c.double()
+    o, d = _rays(64, seed=1)
+    o, d = o.double(), d.double()
+    bg = torch.ones(3, dtype=torch.float64)
+    ref = _two_pass_reference(f, o, d, 16, 8, bg, torch.Generator().manual_seed(5))
+    (g_ref,) = torch.autograd.grad(ref.sum(), f.w)
+    out = render_volume_rays(f, o, d, 16, 8, bg, torch.Generator().manual_seed(5))
+    (g_out,) = torch.autograd.grad(out["color"].sum(), f.w)
+    torch.testing.assert_close(out["color"], ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(g_out, g_ref, rtol=1e-10, atol=1e-12)
+    assert torch.all(out["t"][:, 1:] >= out["t"][:, :-1])  # merged in distance order

@@ -72,6 +72,9 @@ class ShellField(nn.Module):
         t = (math.log(cfg.init_kernel) - self.log_kmin) / self.log_krange
         self.kernel_z0 = math.log(t / (1.0 - t))  # logit: sigmoid(z0) = t
         self.geometric_init()
+        # coarse-to-fine training (Neuralangelo): hash levels >= active_levels read as zero;
+        # None = all levels (inference always uses all)
+        self.active_levels: int | None = None
         if cfg.global_kernel:
             # the kernel row of the last layer stays zero: s depends on its bias only, one
             # learned scalar (the Dr.Jit twin evaluates the same layer unchanged)
@@ -111,6 +114,10 @@ class ShellField(nn.Module):
             raise InputError(f"ShellField: points must be [N, 3], got {tuple(x.shape)}")
         xn = self.normalize(x)
         feats = self.grid(torch.clamp(xn * 0.5 + 0.5, 0.0, 1.0))
+        L, Fl = self.cfg.n_levels, self.cfg.n_features_per_level
+        if self.active_levels is not None and self.active_levels < L:
+            mask = (torch.arange(L * Fl, device=x.device) < self.active_levels * Fl)
+            feats = feats * mask.to(feats.dtype)
         return xn, self.geo_mlp(torch.cat([xn, feats], dim=1))
 
     def geometry(self, x: torch.Tensor  # [N, 3] world

@@ -60,6 +60,15 @@ class _DrJitOps:
         return dr.clip(x, lo, hi)
 
 
+def may_have_density(f: torch.Tensor, s: torch.Tensor, h: float, k: float) -> torch.Tensor:
+    """The occupancy rule of every occupancy grid: a cell whose centre (or any tested point) has
+    |f| < h + k s may hold density (h: half the cell diagonal). For an SDF (|grad f| <= 1)
+    the test at one point bounds |f| >= k s over the whole cell otherwise, and a layer with
+    |f| >= k s holds an opacity <= e^-k (the NeuS transmittance across f in [-k s, k s] falls
+    by Phi_s(-k s) / Phi_s(k s) ~ e^-k). Torch tensors, any shape."""
+    return f.abs() < h + k * s
+
+
 def _ops(x):
     return _TorchOps if isinstance(x, torch.Tensor) else _DrJitOps
 

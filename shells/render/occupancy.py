@@ -62,6 +62,7 @@ import torch
 
 from shells.config import RenderConfig
 from shells.errors import InputError
+from shells.fields.neus import may_have_density
 from shells.levelset.grid import check_aabb
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import PackedSamples
@@ -137,7 +138,7 @@ def build_occupancy_grid(field: Any,  # Dr.Jit field: eval_geometry(x) or eval(x
                  torch.rand(ijk.shape, generator=gen, dtype=torch.float64))  # [P, 3] in cell
             x = (box[0] + (ijk + u) * cell).float()  # [P, 3] world points
             f, s = _eval_f_s(field, x)
-            occ[a:a + len(flat)] |= f.abs() < h + k * s
+            occ[a:a + len(flat)] |= may_have_density(f, s, h, k)
     grid = occ.reshape(1, 1, N, N, N).float()
     if dilate > 0:
         grid = torch.nn.functional.max_pool3d(grid, 2 * dilate + 1, stride=1, padding=dilate)

@@ -4,14 +4,25 @@ A ray r(t) = o + t d (unit d) is clipped to the scene box [near, far]; samples a
 stratified uniform sampling, then refined by inverse-CDF sampling of the coarse weights (NeuS
 up-sampling). Each sample i owns the section between the mid-points to its neighbours (the first
 and last sections end at near and far), so the sections tile [near, far] and the discrete NeuS
-alpha of `shells.fields.neus` applies per sample with its own kernel size s(x_i).
+alpha of `shells.fields.neus` applies per sample with its own kernel size s(x_i). The field is
+evaluated once per sample: the coarse samples (with gradient) give the weights that place the
+fine ones, and both sets are merged in distance order.
+
+Empty-space skipping (`SpanGrid`, the Instant-NGP / nerfacc occupancy grid for an SDF): a
+binary grid over the box, rebuilt from the field during training with the occupancy rule of
+every renderer (`shells.fields.neus.may_have_density`), gives each ray the span between the
+first and the last occupied cell it crosses (widened by a cell diagonal on both sides). The
+same hierarchical sampling then runs on that span instead of the whole box chord, and a ray
+that crosses no occupied cell is not sampled at all: its colour is the background.
 """
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-from shells.fields.neus import composite, neus_alpha
+from shells.fields.neus import composite, may_have_density, neus_alpha
 
 
 def ray_aabb(origins: torch.Tensor,  # [R, 3]
@@ -27,6 +38,72 @@ def ray_aabb(origins: torch.Tensor,  # [R, 3]
     hit = far > near
     far = torch.where(hit, far, near)
     return near, far, hit
+
+
+class SpanGrid:
+    """Occupancy over the scene box for stage-1 sampling; ``occ`` is [N, N, N] bool indexed
+    [ix, iy, iz], or None before the first `update` (then every ray gets its whole chord)."""
+
+    def __init__(self, aabb: torch.Tensor,  # [2, 3] scene box
+                 resolution: int, k: float, chunk: int = 1 << 18) -> None:
+        self.aabb = aabb.detach().float()
+        self.N, self.k, self.chunk = int(resolution), float(k), int(chunk)
+        self.cell = (self.aabb[1] - self.aabb[0]) / self.N  # [3]
+        self.h = 0.5 * float(self.cell.norm())  # half cell diagonal
+        self.occ: torch.Tensor | None = None
+
+    @torch.no_grad()
+    def update(self, field: torch.nn.Module) -> None:
+        """Occupied where |f| < h + k s at the cell centre, dilated by one cell (3^3 max pool):
+        a deterministic function of the field."""
+        N, dev = self.N, self.aabb.device
+        ax = torch.arange(N, device=dev, dtype=torch.float32) + 0.5
+        occ = torch.empty(N ** 3, dtype=torch.bool, device=dev)
+        ix = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+        for a in range(0, N ** 3, self.chunk):
+            x = self.aabb[0] + ix[a:a + self.chunk] * self.cell
+            geo = field.geometry(x)
+            occ[a:a + len(x)] = may_have_density(geo["sdf"], geo["s"], self.h, self.k)
+        grid = occ.reshape(1, 1, N, N, N).float()
+        grid = torch.nn.functional.max_pool3d(grid, 3, stride=1, padding=1)
+        self.occ = grid.reshape(N, N, N) > 0.5
+
+    @property
+    def fraction(self) -> float:
+        """Share of occupied cells (1 before the first update)."""
+        return 1.0 if self.occ is None else float(self.occ.float().mean())
+
+    def spans(self, origins: torch.Tensor,  # [R, 3]
+              dirs: torch.Tensor,  # [R, 3] unit
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """near [R], far [R], hit [R]: the box chord cut to the occupied cells the ray crosses.
+
+        Probes at half the smallest cell size find the first and last occupied cell; the span is
+        widened by the cell diagonal on both sides (a probe can sit anywhere in its cell)."""
+        near, far, hit = ray_aabb(origins, dirs, self.aabb)
+        if self.occ is None:
+            return near, far, hit
+        step = 0.5 * float(self.cell.min())
+        n = max(1, int(math.ceil(float((far - near).max()) / step)))
+        j = torch.arange(n, device=origins.device, dtype=origins.dtype) + 0.5
+        t = near[:, None] + step * j  # [R, n]
+        x = origins[:, None] + t[..., None] * dirs[:, None]  # [R, n, 3]
+        c = ((x - self.aabb[0]) / self.cell).floor().long().clamp_(0, self.N - 1)
+        m = self.occ[c[..., 0], c[..., 1], c[..., 2]] & (t < far[:, None])  # [R, n]
+        anyocc = m.any(1) & hit
+        first = m.float().argmax(1)
+        last = n - 1 - m.flip(1).float().argmax(1)
+        margin = 2.0 * self.h
+        lo = torch.maximum(near, near + step * (first + 0.5) - margin)
+        hi = torch.minimum(far, near + step * (last + 0.5) + margin)
+        return lo, torch.where(anyocc, hi, lo), anyocc
+
+    def state_dict(self) -> dict[str, torch.Tensor | None]:
+        return {"occ": None if self.occ is None else self.occ.cpu()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor | None]) -> None:
+        occ = state.get("occ")
+        self.occ = None if occ is None else occ.to(self.aabb.device)
 
 
 def stratified_samples(near: torch.Tensor,  # [R]
@@ -84,38 +161,59 @@ def render_volume_rays(field: torch.nn.Module,
                 n_importance: int,
                 background: torch.Tensor,  # [3] or [R, 3]
                 generator: torch.Generator | None = None,
+                span: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                 ) -> dict[str, torch.Tensor]:
-    """Render rays through the field's scene box (`field.aabb`).
+    """Render rays through the field's scene box (`field.aabb`), or through ``span`` = (near,
+    far, hit) [R] each when given (`SpanGrid.spans`).
 
     Returns color [R, 3], opacity [R], depth [R] (expected t), weights [R, S], points [R, S, 3],
-    s [R, S] and hit [R]. Rays that miss the box get the background.
+    s [R, S] and hit [R]. Rays that miss the box (or their span) get the background.
     """
-    near, far, hit = ray_aabb(origins, dirs, field.aabb)
+    near, far, hit = ray_aabb(origins, dirs, field.aabb) if span is None else span
     t = stratified_samples(near, far, n_samples, generator)
+    R = t.shape[0]
+    out = _field_at(field, origins, dirs, t)
     if n_importance > 0:
+        # the coarse samples are evaluated once, with gradient; their weights (detached) place
+        # the fine samples, which are evaluated and merged in distance order
         with torch.no_grad():
-            pts = origins[:, None] + t[..., None] * dirs[:, None]
-            geo = field.geometry(pts.reshape(-1, 3))
-            shape = t.shape
-            cos = (geo["normal"].reshape(*shape, 3) * dirs[:, None]).sum(-1)
             delta = torch.diff(section_edges(t, near, far), dim=-1)
-            alpha = neus_alpha(geo["sdf"].reshape(shape), geo["s"].reshape(shape), cos, delta)
-            _, w, _ = composite(alpha, torch.zeros(*shape, 3, device=t.device), background)
+            cos = (out["normal"] * dirs[:, None]).sum(-1)
+            alpha = neus_alpha(out["sdf"], out["s"], cos, delta)
+            _, w, _ = composite(alpha, torch.zeros(*t.shape, 3, device=t.device), background)
             t_fine = sample_pdf(t, w, near, far, n_importance, generator)
-            t, _ = torch.sort(torch.cat([t, t_fine], dim=-1), dim=-1)
+        fine = _field_at(field, origins, dirs, t_fine)
+        t, order = torch.sort(torch.cat([t, t_fine], dim=-1), dim=-1)
+        out = {k: _merge(out[k], fine[k], order) for k in out}
     delta = torch.diff(section_edges(t, near, far), dim=-1)  # [R, S]
-    pts = origins[:, None] + t[..., None] * dirs[:, None]  # [R, S, 3]
-    R, S = t.shape
+    S = t.shape[1]
     d = dirs[:, None].expand(R, S, 3)
-    out = field(pts.reshape(-1, 3), d.reshape(-1, 3))
-    sdf, s = out["sdf"].reshape(R, S), out["s"].reshape(R, S)
-    normal, rgb = out["normal"].reshape(R, S, 3), out["rgb"].reshape(R, S, 3)
+    pts = origins[:, None] + t[..., None] * dirs[:, None]  # [R, S, 3]
+    sdf, s, normal, rgb = out["sdf"], out["s"], out["normal"], out["rgb"]
     cos = (normal * d).sum(-1)
     alpha = neus_alpha(sdf, s, cos, delta) * hit[:, None]
     color, weights, opacity = composite(alpha, rgb, background)
     depth = (weights * t).sum(-1)
     return {"color": color, "opacity": opacity, "depth": depth, "weights": weights,
             "points": pts, "t": t, "s": s, "sdf": sdf, "hit": hit}
+
+
+def _field_at(field: torch.nn.Module, origins: torch.Tensor, dirs: torch.Tensor,
+              t: torch.Tensor,  # [R, S]
+              ) -> dict[str, torch.Tensor]:  # sdf, s [R, S]; normal, rgb [R, S, 3]
+    R, S = t.shape
+    pts = origins[:, None] + t[..., None] * dirs[:, None]
+    out = field(pts.reshape(-1, 3), dirs[:, None].expand(R, S, 3).reshape(-1, 3))
+    return {"sdf": out["sdf"].reshape(R, S), "s": out["s"].reshape(R, S),
+            "normal": out["normal"].reshape(R, S, 3), "rgb": out["rgb"].reshape(R, S, 3)}
+
+
+def _merge(a: torch.Tensor, b: torch.Tensor,  # [R, S1, ...], [R, S2, ...]
+           order: torch.Tensor,  # [R, S1 + S2] sort order of the concatenated samples
+           ) -> torch.Tensor:
+    both = torch.cat([a, b], dim=1)
+    idx = order.view(*order.shape, *([1] * (both.ndim - 2))).expand_as(both)
+    return both.gather(1, idx)
 
 
 @torch.no_grad()
@@ -126,12 +224,16 @@ def render_volume_image(field: torch.nn.Module,
                  n_importance: int,
                  background: torch.Tensor,  # [3]
                  chunk: int = 4096,
+                 grid: SpanGrid | None = None,
                  ) -> dict[str, torch.Tensor]:
-    """Deterministic chunked rendering of many rays (evaluation): color [P, 3], opacity [P]."""
+    """Deterministic chunked rendering of many rays (evaluation): color [P, 3], opacity [P].
+    With ``grid``, each ray is sampled on its occupied span (as in training)."""
     colors, opac = [], []
     for i in range(0, origins.shape[0], chunk):
-        out = render_volume_rays(field, origins[i:i + chunk], dirs[i:i + chunk], n_samples,
-                                 n_importance, background, generator=None)
+        o, d = origins[i:i + chunk], dirs[i:i + chunk]
+        span = None if grid is None else grid.spans(o, d)
+        out = render_volume_rays(field, o, d, n_samples, n_importance, background,
+                                 generator=None, span=span)
         colors.append(out["color"])
         opac.append(out["opacity"])
     return {"color": torch.cat(colors), "opacity": torch.cat(opac)}

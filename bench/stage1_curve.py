@@ -1,0 +1,133 @@
+"""Stage-1 training curves: test PSNR against training wall time, old against new, one run.
+
+    python bench/stage1_curve.py --data ../shared/data/lego --downscale 8 --out OUT
+
+Trains the same data twice, one after the other (never two trainings at once: on 2 cores they
+slow each other ~10x):
+
+* ``old``: the toy preset as it was before issue 13 (``sampler`` "box": every ray sampled over
+  its whole chord through the scene box, 1024 rays per step);
+* ``new``: what ``--preset auto`` picks for the data (`shells.training.preset_config`: on the
+  CPU for images above 96 px the "object" preset, with empty-space skipping).
+
+Each run is cut into ``--segments`` equal pieces (``train(..., stop_at=k)`` then ``--resume``,
+which retraces the uninterrupted run exactly); after each piece the checkpoint is scored on
+the test views (full-ray, the run's own sampler), off the clock. The wall time of a point is
+the sum of the pieces' training seconds. Writes OUT/curve.json (every point, rays/s and
+samples/s of each run), OUT/curve.png (matplotlib) and prints a Markdown table. ``--iters-old``
+and ``--iters-new`` set the runs' lengths (default: the presets' own).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from shells.config import toy_config  # noqa: E402
+from shells.datasets import load_dataset  # noqa: E402
+from shells.run import RunDir, field_from_checkpoint, read_checkpoint  # noqa: E402
+from shells.training import evaluate, preset_config, stage1_grid, train  # noqa: E402
+
+
+def score(run: Path, test, device: torch.device) -> float:
+    ckpt = read_checkpoint(RunDir(run))
+    field, cfg = field_from_checkpoint(ckpt, str(run), device)
+    grid = stage1_grid(ckpt, field, cfg)
+    return evaluate(field, test, cfg.train, 0, device, grid)["psnr"]
+
+
+def curve(name: str, cfg, args, test, device: torch.device) -> dict:
+    run = Path(args.out) / name
+    shutil.rmtree(run, ignore_errors=True)
+    iters = cfg.train.iters
+    cuts = sorted({max(1, round(iters * (k + 1) / args.segments)) for k in range(args.segments)})
+    points, seconds, rays, samples = [], 0.0, 0.0, 0.0
+    for i, k in enumerate(cuts):
+        s = train(args.data, run, cfg, device, downscale=args.downscale, resume=i > 0,
+                  progress=False, stop_at=k, evaluate_test=False)
+        seconds += s["seconds"]
+        steps = k - (cuts[i - 1] if i else 0)
+        rays += s["rays_per_s"] * s["seconds"]
+        samples += s["samples_per_s"] * s["seconds"]
+        t = time.perf_counter()
+        p = score(run, test, device)
+        points.append({"step": k, "seconds": seconds, "psnr": p})
+        print(f"{name}: step {k} ({steps} steps in {s['seconds']:.0f} s), {seconds:.0f} s "
+              f"trained, test PSNR {p:.2f} dB (scored in {time.perf_counter() - t:.0f} s)",
+              flush=True)
+    return {"iters": iters, "points": points, "seconds": seconds, "rays_per_s": rays / seconds,
+            "samples_per_s": samples / seconds, "psnr": points[-1]["psnr"],
+            "config": cfg.to_dict()}
+
+
+def plot(res: dict, path: Path, title: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.6), dpi=150)
+    for name, r in res.items():
+        xs = [0.0] + [p["seconds"] / 60 for p in r["points"]]
+        ys = [None] + [p["psnr"] for p in r["points"]]
+        ax.plot(xs[1:], ys[1:], marker="o",
+                label=f"{name}: {r['rays_per_s']:.0f} rays/s, {r['samples_per_s'] / 1e3:.0f}k "
+                      f"samples/s")
+    ax.set_xlabel("stage-1 training time (min)")
+    ax.set_ylabel("test PSNR (dB)")
+    ax.set_title(title, fontsize=8)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", required=True)
+    p.add_argument("--downscale", type=int, default=8)
+    p.add_argument("--out", required=True)
+    p.add_argument("--segments", type=int, default=6, help="test-PSNR points per curve")
+    p.add_argument("--iters-old", type=int, default=None)
+    p.add_argument("--iters-new", type=int, default=None)
+    p.add_argument("--only", choices=["old", "new"], default=None, help="train one of them")
+    args = p.parse_args()
+    device = torch.device("cpu")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    test = load_dataset(args.data, "test", downscale=args.downscale)
+    old = toy_config()
+    new, preset = preset_config("auto", args.data, args.downscale, device)
+    for cfg, iters in ((old, args.iters_old), (new, args.iters_new)):
+        if iters is not None:
+            cfg.update({"train": {"iters": iters}}, "bench")
+    res = {}
+    for name, cfg in (("old", old), ("new", new)):
+        if args.only in (None, name):
+            res[name] = curve(name, cfg, args, test, device)
+    meta = {"data": args.data, "downscale": args.downscale, "new_preset": preset,
+            "torch_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d")}
+    (out / "curve.json").write_text(json.dumps({"meta": meta, "runs": res}, indent=2) + "\n")
+    plot(res, out / "curve.png", f"{Path(args.data).name} 1/{args.downscale}, stage 1, "
+                                 f"{torch.get_num_threads()} torch threads")
+    print("\n| run | steps | train s | rays/s | samples/s | test PSNR |")
+    print("|---|---|---|---|---|---|")
+    for name, r in res.items():
+        print(f"| {name} | {r['iters']} | {r['seconds']:.0f} | {r['rays_per_s']:.0f} | "
+              f"{r['samples_per_s']:.0f} | {r['psnr']:.2f} |")
+    if len(res) == 2:
+        print(f"\nrays/s new / old: {res['new']['rays_per_s'] / res['old']['rays_per_s']:.2f}x")
+    print(f"curve: {out / 'curve.png'}, {out / 'curve.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
