@@ -56,7 +56,7 @@ def curve(name: str, cfg, args, test, device: torch.device) -> dict:
         seconds += s["seconds"]
         steps = k - (cuts[i - 1] if i else 0)
         rays += s["rays_per_s"] * s["seconds"]
-        samples += s["samples_per_s"] * s["seconds"]
+        samples += s.get("samples_per_s", 0.0) * s["seconds"]
         t = time.perf_counter()
         p = score(run, test, device)
         points.append({"step": k, "seconds": seconds, "psnr": p})

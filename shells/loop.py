@@ -206,8 +206,10 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
             bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
                             rays_s=f"{rays_s:.0f}")
             if w.main and (done % sched.log_every == 0 or done == end):
-                append_log(log, {"step": done, **last, "rays_per_s": rays_s,
-                                 "samples_per_s": samples / elapsed, "elapsed_s": elapsed})
+                rec = {"step": done, **last, "rays_per_s": rays_s, "elapsed_s": elapsed}
+                if samples:
+                    rec["samples_per_s"] = samples / elapsed
+                append_log(log, rec)
             if done % sched.checkpoint_every == 0 or done == end:
                 if w.main:
                     save_checkpoint(checkpoint, field, opt, done, cfg,
@@ -227,9 +229,11 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
         bar.close()
     field.eval()
     seconds = time.perf_counter() - t0
-    return {"step": end, "seconds": seconds, "rays_per_s": rays_s,
-            "samples_per_s": samples / max(seconds, 1e-9), "last": last,
-            "finished": end == sched.iters}
+    summary = {"step": end, "seconds": seconds, "rays_per_s": rays_s, "last": last,
+               "finished": end == sched.iters}
+    if samples:
+        summary["samples_per_s"] = samples / max(seconds, 1e-9)
+    return summary
 
 
 def _accumulate(model: torch.nn.Module, gens: list[torch.Generator], field: ShellField,

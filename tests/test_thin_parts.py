@@ -7,7 +7,6 @@ opaque and with an error no larger than the pixels of the sphere."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
