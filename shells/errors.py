@@ -51,13 +51,22 @@ def write_json(path: str | Path, data: Any) -> None:
     atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=2) + "\n"))
 
 
-def read_json(path: str | Path, what: str = "file") -> Any:
-    """Read JSON, turning a missing file or a syntax error into a one-line InputError."""
+def read_json(path: str | Path, what: str = "file", max_bytes: int | None = None) -> Any:
+    """Read JSON, turning a missing file, one larger than ``max_bytes`` (checked by its size,
+    before reading) or a syntax error into a one-line InputError."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: {what} not found")
+    size = path.stat().st_size
+    if max_bytes is not None and size > max_bytes:
+        raise InputError(f"{path}: {what} is {size / 2**20:.0f} MiB, more than the "
+                         f"{max_bytes / 2**20:.0f} MiB this reader accepts; is it the right "
+                         "file? Split or shrink it")
     try:
         return json.loads(path.read_text())
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not a text (UTF-8) file ({exc.reason} at byte {exc.start}); "
+                         "fix or regenerate the file")
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}: malformed JSON ({exc.msg} at line {exc.lineno}, "
                          f"column {exc.colno}); fix or regenerate the file")

@@ -26,7 +26,8 @@ import torch
 from shells.config import override_config
 from shells.errors import InputError, write_json
 from shells.metrics import PROTOCOL
-from shells.run import RunDir, load_field, load_shells, read_run, resolve_stage
+from shells.run import (RunDir, field_from_checkpoint, load_field, load_shells, read_checkpoint,
+                        read_run, resolve_stage, shells_source)
 
 
 def extract_run(run_dir: str | Path, resolution: int | None = None,
@@ -41,7 +42,10 @@ def extract_run(run_dir: str | Path, resolution: int | None = None,
     from shells.levelset.grid import sample_grid_banded
 
     run = RunDir(run_dir)
-    field, cfg = load_field(run.root, stage="stage1")
+    ckpt = read_checkpoint(run, "stage1")
+    field, cfg = field_from_checkpoint(ckpt, str(run.checkpoint("stage1")))
+    source = shells_source(run, ckpt["step"])
+    del ckpt
     override_config(cfg, config, ("shell",), "shells-extract")
     if resolution is not None:
         cfg.update({"shell": {"resolution": resolution}}, "--resolution")
@@ -63,6 +67,7 @@ def extract_run(run_dir: str | Path, resolution: int | None = None,
     shells.stats["timings_s"]["sample_grid"] = t_grid
     shells.stats["grid_exact_fraction"] = exact
     shells.stats["timings_s"]["total"] = time.perf_counter() - t0
+    shells.stats["source"] = source  # which run and stage-1 step (shells.run.check_shells)
     write_shells(shells, run.shells)
     return shells.stats
 
