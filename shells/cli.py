@@ -1,6 +1,10 @@
 """Command-line entry points. Thin: parse arguments, call library functions, report.
 
-Every command turns an `InputError` into one line on stderr and exit status 2.
+Every command turns an `InputError`, or a write the system refuses (disk full, a read-only
+folder), into one line on stderr and exit status 2; SIGINT / SIGTERM end it with status 130,
+leaving its outputs as they were (or, for training, resumable). The commands that write a run
+(shells-train, -extract, -finetune) hold its lock file, and shells-render that of its output
+folder: a second command on the same run is refused at once (`shells.run.lock`).
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ import traceback
 from typing import Callable, Sequence
 
 from shells import distributed
-from shells.errors import InputError, Interrupted
+from shells.errors import InputError, Interrupted, write_failure
 
 
 def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.ArgumentParser,
@@ -32,11 +36,16 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
         status = 130
-    except Exception:
-        if distributed.launched_world() <= 1:
+    except Exception as exc:
+        err = write_failure(exc) if isinstance(exc, OSError) else None
+        if err is not None:  # a refused write (disk full, read-only folder): one line, status 2
+            print(f"{parser.prog}: error: {err}", file=sys.stderr)
+            status = 2
+        elif distributed.launched_world() <= 1:
             raise
-        traceback.print_exc()  # a torchrun worker leaves through os._exit: print it first
-        status = 1
+        else:
+            traceback.print_exc()  # a torchrun worker leaves through os._exit: print it first
+            status = 1
     finally:
         signal.signal(signal.SIGTERM, previous)
         if distributed.launched_world() > 1:
@@ -57,6 +66,16 @@ def _leave_job(status: int) -> None:
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(status)
+
+
+def _locked(path: object, command: str):  # -> context manager
+    """The lock of a run or output folder (`shells.run.lock`), held by rank 0 of a torchrun
+    job (its other ranks write nothing)."""
+    import contextlib
+
+    from shells.run import lock
+
+    return lock(path, command) if distributed.launched_rank() == 0 else contextlib.nullcontext()
 
 
 def _terminate(signum: int, frame: object) -> None:
@@ -176,8 +195,11 @@ def _train(args: argparse.Namespace) -> int:
         raise InputError("--data DIR is required (the data set to train on)")
     if args.downscale < 1:
         raise InputError(f"--downscale {args.downscale}: must be at least 1")
-    summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
-                    resume=args.resume, iters=args.iters)
+    from shells.run import RunDir
+
+    with _locked(RunDir(args.out).lock, "shells-train"):
+        summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
+                        resume=args.resume, iters=args.iters)
     if "test" in summary and distributed.launched_rank() == 0:
         print(f"test PSNR {summary['test']['psnr']:.2f} dB over {summary['test']['n_views']} "
               f"views; checkpoint {args.out}/checkpoint.pt")
@@ -210,7 +232,10 @@ def _extract(args: argparse.Namespace) -> int:
 
     if args.fixed_band is not None and not args.fixed_band > 0:
         raise InputError(f"--fixed-band {args.fixed_band}: must be > 0 world units (e.g. 0.02)")
-    stats = extract_run(args.run, args.resolution, args.fixed_band, args.config)
+    from shells.run import RunDir
+
+    with _locked(RunDir(args.run).lock, "shells-extract"):
+        stats = extract_run(args.run, args.resolution, args.fixed_band, args.config)
     bw = stats.get("band_width", {})
     print(f"outer: {stats['outer_triangles']} triangles, inner: {stats['inner_triangles']} "
           f"triangles ({'empty: no interior termination' if stats['inner_empty'] else 'ok'})")
@@ -246,8 +271,11 @@ def finetune_parser() -> argparse.ArgumentParser:
 def _finetune(args: argparse.Namespace) -> int:
     from shells.finetune import finetune
 
-    summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
-                       device=args.device)
+    from shells.run import RunDir
+
+    with _locked(RunDir(args.run).lock, "shells-finetune"):
+        summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
+                           device=args.device)
     if distributed.launched_rank() == 0:
         print(f"stage 2 done ({summary['step']} steps); checkpoint {args.run}/finetune.pt")
     return 0
@@ -309,9 +337,19 @@ def _render(args: argparse.Namespace) -> int:
         if not (n >= 1 and 0 <= k < n):
             raise InputError(f"--shard {args.shard}: need 0 <= K < N")
         shard = (k, n)
-    m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
-                   height=args.height, out=args.out, stage=args.stage, config=args.config,
-                   spp=args.spp, path=args.path, frames=args.frames, fps=args.fps, shard=shard)
+    import contextlib
+
+    from shells.pipeline import render_out
+    from shells.run import RunDir, output_lock
+
+    out = render_out(RunDir(args.run), args.mode, args.path, args.out)
+    guard = (contextlib.nullcontext() if shard is not None  # shards share OUT by design
+             else _locked(output_lock(out), "shells-render"))
+    with guard:
+        m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
+                       height=args.height, out=args.out, stage=args.stage, config=args.config,
+                       spp=args.spp, path=args.path, frames=args.frames, fps=args.fps,
+                       shard=shard)
     if distributed.launched_rank() != 0:
         return 0
     if m.get("complete") is False:

@@ -2,16 +2,30 @@
 
 `InputError` means the user's input is wrong (a missing file, malformed JSON, a value out of
 range). Its message is one line naming the file or value and the fix; the CLI prints it and exits
-with status 2. Internal invariants use `assert`.
+with status 2. Internal invariants use `assert`. A write that the system refuses (disk full, a
+read-only or missing folder: `WRITE_ERRNOS`) is reported the same way (`write_failure`).
+
+Outputs are all-or-nothing: a file is written through a temporary sibling and renamed into
+place (`atomic_write`); a folder of outputs is written into a hidden staging folder and its
+files moved in by `commit_files`, with SIGINT / SIGTERM held back while they move
+(`uninterrupted`), so an interrupted or failed command leaves the old outputs or the new ones.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import os
+import signal
 import tempfile
+import threading
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
+
+# errors of a write the system refuses: the user can fix them (free space, another folder)
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
+                          errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG, errno.EFBIG})
 
 
 class InputError(ValueError):
@@ -28,21 +42,60 @@ class Interrupted(RuntimeError):
         self.status = status
 
 
+def write_failure(exc: OSError, what: str = "") -> "InputError | None":
+    """The one-line InputError for a refused write (`WRITE_ERRNOS`), else None."""
+    if exc.errno not in WRITE_ERRNOS:
+        return None
+    where = exc.filename or what or "an output file"
+    fix = ("free disk space" if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) else
+           "make the folder writable or choose another output folder")
+    return InputError(f"{where}: cannot write ({exc.strerror or os.strerror(exc.errno)}); {fix} "
+                      "and run the command again (what was there before is unchanged)")
+
+
+@contextlib.contextmanager
+def uninterrupted() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back for the block (main thread): a signal that arrives during it
+    is delivered, and raises, once the block is done. For short commit steps only."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def commit_files(stage: Path, out: Path, last: str | None = None) -> None:
+    """Move every file of the staging folder ``stage`` into ``out`` (created), ``last`` (a file
+    name that marks a complete output) at the end, without being interrupted between them."""
+    with uninterrupted():
+        out.mkdir(parents=True, exist_ok=True)
+        names = sorted(p.name for p in stage.iterdir())
+        for n in [n for n in names if n != last] + [n for n in names if n == last]:
+            os.replace(stage / n, out / n)
+
+
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     """Write a file through a temporary sibling and rename it into place.
 
-    ``write(tmp_path)`` must create ``tmp_path``. A crash leaves either the old file or none,
-    never a half-written one.
+    ``write(tmp_path)`` must create ``tmp_path``. A crash, a signal or a failed write (disk
+    full) leaves either the old file or none, never a half-written one or the temporary.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
-    os.close(fd)
+    tmp = None
     try:
+        with uninterrupted():  # no signal between creating the temporary and knowing its name
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
+                                       suffix=path.suffix)
+            os.close(fd)
         write(Path(tmp))
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
         raise
 
 

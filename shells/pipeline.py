@@ -24,7 +24,7 @@ from typing import Any
 import torch
 
 from shells.config import override_config
-from shells.errors import InputError, write_json
+from shells.errors import InputError, Interrupted, commit_files, write_json
 from shells.metrics import PROTOCOL
 from shells.run import (RunDir, field_from_checkpoint, load_field, load_shells, read_checkpoint,
                         read_run, resolve_stage, shells_source)
@@ -38,10 +38,19 @@ def extract_run(run_dir: str | Path, resolution: int | None = None,
     ``fixed_width`` w gives the fixed band {|f| <= w} instead of the adaptive one (ablation);
     ``config``: a JSON file with a ``shell`` section overriding the run's shell settings.
     """
+    run = RunDir(run_dir)
+    try:
+        return _extract(run, resolution, fixed_width, config)
+    except KeyboardInterrupt:
+        raise Interrupted(f"shells-extract interrupted; {run.shells} is as it was before; run "
+                          "it again", status=130) from None
+
+
+def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
+             config: str | Path | None) -> dict[str, Any]:
     from shells.levelset.extract import extract_shells, write_shells
     from shells.levelset.grid import sample_grid_banded
 
-    run = RunDir(run_dir)
     ckpt = read_checkpoint(run, "stage1")
     field, cfg = field_from_checkpoint(ckpt, str(run.checkpoint("stage1")))
     source = shells_source(run, ckpt["step"])
@@ -86,6 +95,15 @@ def check_run(run: RunDir, mode: str) -> dict[str, Any]:
     return meta
 
 
+def render_out(run: RunDir, mode: str, path: str | None, out: str | Path | None) -> Path:
+    """The folder a render writes: ``out``, else RUN/render-MODE (a split) or RUN/path-NAME."""
+    if out is not None:
+        return Path(out)
+    if path:
+        return run.root / f"path-{path if path in ('orbit', 'spiral', 'interpolate') else Path(path).stem}"
+    return run.render_dir(mode)
+
+
 def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                width: int | None = None, height: int | None = None,
                out: str | Path | None = None, progress: bool = True,
@@ -109,7 +127,6 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     from shells.datasets import load_dataset
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
-    from shells.render.views import render_views
 
     run = RunDir(run_dir)
     meta = check_run(run, mode)
@@ -129,15 +146,12 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
         cams, file_fps = camera_path(path, data.cameras, data.aabb, frames, width, height)
         fps = fps or file_fps or 30.0
         images, same_size = None, False
-        name = Path(path).stem if path not in ("orbit", "spiral", "interpolate") else path
-        default_out = run.root / f"path-{name}"
     else:
         cams = data.cameras.resized(width, height)
         same_size = (cams.width, cams.height) == (data.cameras.width, data.cameras.height)
         images = data.images if same_size else None
-        default_out = run.render_dir(mode)
     dj = DrJitField(field)
-    out = Path(out) if out is not None else default_out
+    out = render_out(run, mode, path, out)
     extra = {
         "split": None if path else split, "path": path, "variant": variant,
         "stage": loaded, "out": str(out),
@@ -156,6 +170,22 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                              "ranks share the frames by themselves")
         return _render_shard(dj, cams, images, rc, mode, scene, data.aabb, progress, bg, out,
                              shard, extra)
+    try:
+        return _render_all(dj, cams, images, rc, mode, scene, data.aabb, progress, bg, out,
+                           extra)
+    except KeyboardInterrupt:
+        raise Interrupted(f"shells-render interrupted; {out} is as it was before; run it again",
+                          status=130) from None
+
+
+def _render_all(dj: Any, cams: Any, images: Any, rc: Any, mode: str, scene: Any, aabb: Any,
+                progress: bool, bg: tuple[float, float, float], out: Path,
+                extra: dict[str, Any]) -> dict[str, Any]:
+    """All frames by this process (or its share under torchrun) into a hidden folder beside
+    OUT, moved into OUT when all are done."""
+    from shells import distributed
+    from shells.render.views import render_views
+
     w = distributed.world()  # the CPU group (gloo) coordinates; each rank renders on its own
     tmp = None
     if w.main:
@@ -163,7 +193,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
         tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
     tmp = Path(distributed.broadcast_object(str(tmp) if tmp else None))
     try:
-        metrics = render_views(dj, cams, images, rc, mode, scene, data.aabb, tmp, progress, bg,
+        metrics = render_views(dj, cams, images, rc, mode, scene, aabb, tmp, progress, bg,
                                world=w)
         distributed.barrier()  # every rank's frames are in tmp
         metrics.update(extra)
@@ -183,10 +213,7 @@ def _finish(tmp: Path, out: Path, metrics: dict[str, Any]) -> None:
     if metrics.get("path"):
         write_video(sorted(tmp.glob("r_*.png")), tmp / "video.mp4", metrics["fps"])
     write_json(tmp / "metrics.json", metrics)
-    out.mkdir(parents=True, exist_ok=True)
-    names = sorted(p.name for p in tmp.iterdir())
-    for n in [n for n in names if n != "metrics.json"] + ["metrics.json"]:
-        os.replace(tmp / n, out / n)  # metrics.json last: it marks a complete render
+    commit_files(tmp, out, last="metrics.json")  # metrics.json last: it marks a complete render
 
 
 def _render_shard(field: Any, cams: Any, images: Any, rc: Any, mode: str, scene: Any,

@@ -12,6 +12,7 @@ Layout::
     RUN/finetune_log.jsonl    stage 2 log
     RUN/finetune_summary.json stage 2 finished
     RUN/render-MODE/          images and metrics.json (shells-render)
+    RUN/.lock                 held by the command writing the run (`lock`): pid, host, command
 
 Versions and identity: run.json holds ``format`` (`FORMAT_VERSION`, the layout of the run
 directory and its files) and ``run_id`` (random, made by shells-train); checkpoints hold both
@@ -29,11 +30,15 @@ CLI, which reach the run only through it.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import socket
+import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import torch
 
@@ -85,6 +90,95 @@ class RunDir:
     def render_dir(self, mode: str) -> Path:
         return self.root / f"render-{mode}"
 
+    @property
+    def lock(self) -> Path:
+        return self.root / ".lock"
+
+
+def output_lock(out: str | Path) -> Path:
+    """The lock file of an output folder that is not a run (a render's OUT): beside it."""
+    out = Path(os.path.abspath(out))
+    return out.parent / f".{out.name}.lock"
+
+
+# ---------------------------------------------------------------------------------------------
+# Locks: one writer per run (or output folder) at a time
+# ---------------------------------------------------------------------------------------------
+
+def _start_time(pid: int) -> str | None:
+    """The process's start time (Linux /proc, clock ticks since boot): tells a live owner from a
+    new process that reuses its pid. None where /proc is missing or the pid is gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]
+
+
+def _alive(owner: dict[str, Any]) -> bool:
+    """Whether the process that wrote a lock still runs (True when it cannot be told: another
+    host)."""
+    if owner.get("host") != socket.gethostname():
+        return True
+    pid = int(owner.get("pid", -1))
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # someone else's live process
+    started = _start_time(pid)
+    return owner.get("started") is None or started is None or started == owner["started"]
+
+
+@contextlib.contextmanager
+def lock(path: str | Path, command: str) -> Iterator[None]:
+    """Hold the lock file ``path`` (e.g. `RunDir.lock`) for the block: a second command finds
+    it held by a live process and gets a one-line InputError at once; a lock left by a process
+    that is gone (killed) is stale and taken over. A folder the lock had to create is removed
+    again when the block leaves nothing else in it (bad input writes nothing)."""
+    path = Path(os.path.abspath(path))
+    created = [d for d in path.parents if not d.exists()]  # innermost first
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _start_time(os.getpid()),
+          "command": command, "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+    for attempt in range(2):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}")
+        tmp.write_text(json.dumps(me) + "\n")
+        try:
+            os.link(tmp, path)  # atomic: the lock appears with its content, or not at all
+            break
+        except FileExistsError:
+            try:
+                owner = json.loads(path.read_text())
+            except (OSError, ValueError):
+                owner = {}  # removed meanwhile, or not ours: stale
+            if attempt == 0 and not _alive(owner):
+                path.unlink(missing_ok=True)
+                continue
+            raise InputError(
+                f"{path.parent}: in use by {owner.get('command', 'another command')} (pid "
+                f"{owner.get('pid', '?')} on {owner.get('host', '?')}, since "
+                f"{owner.get('since', '?')}); wait for it to end, or delete {path} if that "
+                "process is gone") from None
+        finally:
+            tmp.unlink(missing_ok=True)
+    try:
+        yield
+    finally:
+        try:
+            if json.loads(path.read_text()).get("pid") == os.getpid():
+                path.unlink()
+        except (OSError, ValueError):
+            pass
+        for d in created:
+            try:
+                d.rmdir()  # only if empty: nothing was written
+            except OSError:
+                break
+
 
 # ---------------------------------------------------------------------------------------------
 # run.json and config.json
@@ -102,9 +196,10 @@ def write_run(run: RunDir, data: str | Path, downscale: int, device: str, cfg: C
 
 def _check_format(version: Any, path: Path) -> None:
     if version != FORMAT_VERSION:
-        from shells import __version__
+        import shells
 
-        raise InputError(f"{path}: written in run format {version!r}, but shells {__version__} "
+        raise InputError(f"{path}: written in run format {version!r}, but shells "
+                         f"{shells.__version__} "
                          f"reads format {FORMAT_VERSION}; re-train the run with this version "
                          "(shells-train --out NEW_RUN) or use the shells version that wrote it")
 
@@ -137,7 +232,18 @@ def save_checkpoint(path: Path, field: ShellField, opt: torch.optim.Optimizer, s
     state = {"format": FORMAT_VERSION, "run_id": run_id(RunDir(Path(path).parent)),
              "step": step, "field": field.state_dict(), "optimizer": opt.state_dict(),
              "config": cfg.to_dict(), "aabb": field.aabb.detach().cpu()}
-    atomic_write(path, lambda p: torch.save(state, p))
+    def write(p: Path) -> None:
+        try:
+            torch.save(state, p)
+        except RuntimeError as exc:  # torch's writer reports a full disk this way
+            if "write" not in str(exc) and "unexpected pos" not in str(exc):
+                raise
+            why = (str(exc).splitlines() or [""])[0][:100]
+            raise InputError(f"{path}: writing the checkpoint failed ({why}); is the disk full? "
+                             "Free space and continue with --resume (the previous checkpoint "
+                             "is intact)") from None
+
+    atomic_write(path, write)
 
 
 def checkpoint_config(ckpt: dict[str, Any], source: str) -> Config:
