@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -54,6 +55,7 @@ NGP_OFFSET = (0.5, 0.5, 0.5)  # instant-ngp's default offset
 HOLDOUT_EVERY = 8  # Instant-NGP data without split files: frames 0, 8, 16, ... are "test"
 MAX_TRANSFORMS_BYTES = 64 << 20  # a transforms file above this is refused before it is parsed
 # (a frame takes ~0.5 KB: 64 MiB is over 100k frames; a bigger file is not a transforms file)
+_MITSUBA = threading.Lock()  # 16-bit PNGs are decoded by Mitsuba, one at a time
 PRINCIPAL_POINT_MARGIN = 1.0  # cx, cy may lie this many image sizes outside the image, no more
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "camera_angle_x", "camera_angle_y", "cx", "cy", "w", "h",
@@ -393,9 +395,10 @@ def _read_image(path: Path) -> tuple[torch.Tensor, torch.Tensor | None]:
     """RGB [H, W, 3] and alpha [H, W] (or None) as float32 in [0, 1]."""
     try:
         if _png16(path):  # Pillow would reduce 16-bit colour to 8 bits; Mitsuba keeps them
-            import mitsuba as mi
+            with _MITSUBA:  # its lazy module set-up is not safe from several threads at once
+                import mitsuba as mi
 
-            a = np.array(mi.Bitmap(str(path)))
+                a = np.array(mi.Bitmap(str(path)))
         else:
             a = iio.imread(path)
     except Exception as exc:  # noqa: BLE001 - any decoder failure is a bad file

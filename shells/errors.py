@@ -25,7 +25,8 @@ from typing import Any, Callable, Iterator
 
 # errors of a write the system refuses: the user can fix them (free space, another folder)
 WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
-                          errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG, errno.EFBIG})
+                          errno.ENOTDIR, errno.EISDIR, errno.EEXIST, errno.ENAMETOOLONG,
+                          errno.EFBIG})
 
 
 class InputError(ValueError):
@@ -93,9 +94,11 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
             os.close(fd)
         write(Path(tmp))
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename is None and exc.errno in WRITE_ERRNOS:
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc  # name the file
         raise
 
 

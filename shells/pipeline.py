@@ -24,7 +24,7 @@ from typing import Any
 import torch
 
 from shells.config import override_config
-from shells.errors import InputError, Interrupted, commit_files, write_json
+from shells.errors import WRITE_ERRNOS, InputError, Interrupted, commit_files, write_json
 from shells.metrics import PROTOCOL
 from shells.run import (RunDir, field_from_checkpoint, load_field, load_shells, read_checkpoint,
                         read_run, resolve_stage, shells_source)
@@ -44,6 +44,11 @@ def extract_run(run_dir: str | Path, resolution: int | None = None,
     except KeyboardInterrupt:
         raise Interrupted(f"shells-extract interrupted; {run.shells} is as it was before; run "
                           "it again", status=130) from None
+    except OSError as exc:
+        named = _named(exc, run.shells)
+        if named is exc:
+            raise
+        raise named from exc
 
 
 def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
@@ -79,6 +84,13 @@ def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
     shells.stats["source"] = source  # which run and stage-1 step (shells.run.check_shells)
     write_shells(shells, run.shells)
     return shells.stats
+
+
+def _named(exc: OSError, out: Path) -> OSError:
+    """A refused write without a file name (a full disk) named by the output it was for."""
+    if exc.filename is None and exc.errno in WRITE_ERRNOS:
+        return OSError(exc.errno, exc.strerror, str(out))
+    return exc
 
 
 def check_run(run: RunDir, mode: str) -> dict[str, Any]:
@@ -176,6 +188,11 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     except KeyboardInterrupt:
         raise Interrupted(f"shells-render interrupted; {out} is as it was before; run it again",
                           status=130) from None
+    except OSError as exc:
+        named = _named(exc, out)
+        if named is exc:
+            raise
+        raise named from exc
 
 
 def _render_all(dj: Any, cams: Any, images: Any, rc: Any, mode: str, scene: Any, aabb: Any,
