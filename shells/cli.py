@@ -10,22 +10,47 @@ folder: a second command on the same run is refused at once (`shells.run.lock`).
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import signal
 import sys
 import traceback
 from typing import Callable, Sequence
 
-from shells import distributed
-from shells.errors import InputError, Interrupted, write_failure
+from shells.errors import InputError, Interrupted, uninterrupted, write_failure
+
+
+class _Lazy:
+    """`shells.distributed`, imported when first used: it imports torch, which takes a second,
+    and a Ctrl-C during that second should end the command like any other (one line, 130)."""
+
+    def __getattr__(self, name: str) -> object:
+        from shells import distributed as module
+
+        return getattr(module, name)
+
+
+distributed = _Lazy()
+
+
+def _launched_world() -> int:
+    """torchrun's world size; 1 when the command stopped before it imported torch."""
+    return distributed.launched_world() if "shells.distributed" in sys.modules else 1
 
 
 def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.ArgumentParser,
-         argv: Sequence[str] | None) -> int:
+         argv: Sequence[str] | None, preload: Sequence[str] = ()) -> int:
+    """Parse, run ``fn``, report. The modules in ``preload`` (the command's heavy imports:
+    torch, Dr.Jit, Mitsuba, ...) are imported first with SIGINT / SIGTERM held back: a library
+    interrupted half-way through its import fails in its own odd ways, so a Ctrl-C then
+    takes effect right after the imports."""
     args = parser.parse_args(argv)
     previous = signal.signal(signal.SIGTERM, _terminate)  # torchrun stops workers by SIGTERM
     status = 1
     try:
+        with uninterrupted():
+            for name in preload:
+                importlib.import_module(name)
         status = int(fn(args) or 0)
     except InputError as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
@@ -41,14 +66,14 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
         if err is not None:  # a refused write (disk full, read-only folder): one line, status 2
             print(f"{parser.prog}: error: {err}", file=sys.stderr)
             status = 2
-        elif distributed.launched_world() <= 1:
+        elif _launched_world() <= 1:
             raise
         else:
             traceback.print_exc()  # a torchrun worker leaves through os._exit: print it first
             status = 1
     finally:
         signal.signal(signal.SIGTERM, previous)
-        if distributed.launched_world() > 1:
+        if _launched_world() > 1:
             _leave_job(status)  # does not return
     return status
 
@@ -207,7 +232,7 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def train_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_train, train_parser(), argv)
+    return _run(_train, train_parser(), argv, ("shells.training",))
 
 
 def extract_parser() -> argparse.ArgumentParser:
@@ -248,7 +273,8 @@ def _extract(args: argparse.Namespace) -> int:
 
 
 def extract_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_extract, extract_parser(), argv)
+    return _run(_extract, extract_parser(), argv,
+                ("shells.pipeline", "shells.levelset.extract", "shells.levelset.figure"))
 
 
 def finetune_parser() -> argparse.ArgumentParser:
@@ -282,7 +308,7 @@ def _finetune(args: argparse.Namespace) -> int:
 
 
 def finetune_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_finetune, finetune_parser(), argv)
+    return _run(_finetune, finetune_parser(), argv, ("shells.finetune",))
 
 
 def render_parser() -> argparse.ArgumentParser:
@@ -364,7 +390,9 @@ def _render(args: argparse.Namespace) -> int:
 
 
 def render_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_render, render_parser(), argv)
+    return _run(_render, render_parser(), argv,
+                ("shells.pipeline", "shells.render.views", "shells.fields.drjit_field",
+                 "shells.camera_paths"))
 
 
 def demo_parser() -> argparse.ArgumentParser:

@@ -510,9 +510,16 @@ def _interrupt(cmd: list[str], delay: float) -> subprocess.CompletedProcess:
     except subprocess.TimeoutExpired:
         proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
+    print(f"{Path(cmd[0]).name}: SIGINT after {delay:.2f} s -> status {proc.returncode}")
+    assert "Traceback" not in err, err
+    if proc.returncode == -signal.SIGINT:
+        # the signal came after the command had finished, while the interpreter shut down:
+        # the command has reported its result (and the caller compares it)
+        assert out.strip(), err
+        return subprocess.CompletedProcess(cmd, 0, out, err)
     assert proc.returncode in (0, 130), err
     if proc.returncode == 130:
-        assert "Traceback" not in err and "interrupted" in err.strip().splitlines()[-1], err
+        assert "interrupted" in err.strip().splitlines()[-1], err
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
 
 
