@@ -237,19 +237,23 @@ class Cameras:
         o = self.c2w[cam, :3, 3]
         return o, d
 
-    def pixel_grid(self) -> tuple[Tensor, Tensor]:
-        """Pixel-centre coordinates px, py of every pixel, row-major: [H*W] each."""
-        j, i = torch.meshgrid(torch.arange(self.height, device=self.device),
+    def pixel_grid(self, rows: tuple[int, int] | None = None) -> tuple[Tensor, Tensor]:
+        """Pixel-centre coordinates px, py of every pixel (of image rows [y0, y1) when ``rows``
+        is given), row-major: [H*W] (or [(y1 - y0) * W]) each."""
+        y0, y1 = rows if rows is not None else (0, self.height)
+        j, i = torch.meshgrid(torch.arange(y0, y1, device=self.device),
                               torch.arange(self.width, device=self.device), indexing="ij")
         return i.reshape(-1).float() + 0.5, j.reshape(-1).float() + 0.5
 
-    def pixel_rays(self, i: int, spp: int = 1) -> tuple[Tensor, Tensor]:
-        """Rays of all pixels of camera ``i``, row-major: [H*W*spp, 3] each.
+    def pixel_rays(self, i: int, spp: int = 1,
+                   rows: tuple[int, int] | None = None) -> tuple[Tensor, Tensor]:
+        """Rays of all pixels of camera ``i`` (of rows [y0, y1) only: a tile of a large frame),
+        row-major: [H*W*spp, 3] each.
 
         ``spp`` = 1: through the pixel centres; otherwise through the centres of a k x k grid
         of sub-pixel cells (spp = k^2, `subpixel_offsets`), a pixel's rays contiguous.
         """
-        px, py = self.pixel_grid()
+        px, py = self.pixel_grid(rows)
         off = subpixel_offsets(spp, device=px.device)  # [spp, 2]
         px = (px[:, None] - 0.5 + off[:, 0]).reshape(-1)
         py = (py[:, None] - 0.5 + off[:, 1]).reshape(-1)

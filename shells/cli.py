@@ -1,27 +1,56 @@
 """Command-line entry points. Thin: parse arguments, call library functions, report.
 
-Every command turns an `InputError` into one line on stderr and exit status 2.
+Every command turns an `InputError`, or a write the system refuses (disk full, a read-only
+folder), into one line on stderr and exit status 2; SIGINT / SIGTERM end it with status 130,
+leaving its outputs as they were (or, for training, resumable). The commands that write a run
+(shells-train, -extract, -finetune) hold its lock file, and shells-render that of its output
+folder: a second command on the same run is refused at once (`shells.run.lock`).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import signal
 import sys
 import traceback
 from typing import Callable, Sequence
 
-from shells import distributed
-from shells.errors import InputError, Interrupted
+from shells.errors import InputError, Interrupted, uninterrupted, write_failure
+
+
+class _Lazy:
+    """`shells.distributed`, imported when first used: it imports torch, which takes a second,
+    and a Ctrl-C during that second should end the command like any other (one line, 130)."""
+
+    def __getattr__(self, name: str) -> object:
+        from shells import distributed as module
+
+        return getattr(module, name)
+
+
+distributed = _Lazy()
+
+
+def _launched_world() -> int:
+    """torchrun's world size; 1 when the command stopped before it imported torch."""
+    return distributed.launched_world() if "shells.distributed" in sys.modules else 1
 
 
 def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.ArgumentParser,
-         argv: Sequence[str] | None) -> int:
+         argv: Sequence[str] | None, preload: Sequence[str] = ()) -> int:
+    """Parse, run ``fn``, report. The modules in ``preload`` (the command's heavy imports:
+    torch, Dr.Jit, Mitsuba, ...) are imported first with SIGINT / SIGTERM held back: a library
+    interrupted half-way through its import fails in its own odd ways, so a Ctrl-C then
+    takes effect right after the imports."""
     args = parser.parse_args(argv)
     previous = signal.signal(signal.SIGTERM, _terminate)  # torchrun stops workers by SIGTERM
     status = 1
     try:
+        with uninterrupted():
+            for name in preload:
+                importlib.import_module(name)
         status = int(fn(args) or 0)
     except InputError as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
@@ -32,14 +61,19 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
         status = 130
-    except Exception:
-        if distributed.launched_world() <= 1:
+    except Exception as exc:
+        err = write_failure(exc) if isinstance(exc, OSError) else None
+        if err is not None:  # a refused write (disk full, read-only folder): one line, status 2
+            print(f"{parser.prog}: error: {err}", file=sys.stderr)
+            status = 2
+        elif _launched_world() <= 1:
             raise
-        traceback.print_exc()  # a torchrun worker leaves through os._exit: print it first
-        status = 1
+        else:
+            traceback.print_exc()  # a torchrun worker leaves through os._exit: print it first
+            status = 1
     finally:
         signal.signal(signal.SIGTERM, previous)
-        if distributed.launched_world() > 1:
+        if _launched_world() > 1:
             _leave_job(status)  # does not return
     return status
 
@@ -57,6 +91,16 @@ def _leave_job(status: int) -> None:
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(status)
+
+
+def _locked(path: object, command: str):  # -> context manager
+    """The lock of a run or output folder (`shells.run.lock`), held by rank 0 of a torchrun
+    job (its other ranks write nothing)."""
+    import contextlib
+
+    from shells.run import lock
+
+    return lock(path, command) if distributed.launched_rank() == 0 else contextlib.nullcontext()
 
 
 def _terminate(signum: int, frame: object) -> None:
@@ -168,6 +212,7 @@ def train_parser() -> argparse.ArgumentParser:
 def _train(args: argparse.Namespace) -> int:
     from shells.config import Config, load_config
     from shells.device import torch_device
+    from shells.run import RunDir
     from shells.training import preset_config, train
 
     device = torch_device(args.device)
@@ -181,16 +226,18 @@ def _train(args: argparse.Namespace) -> int:
     base = Config() if args.resume else preset_config(args.preset, args.data, args.downscale,
                                                       device)[0]
     cfg = load_config(args.config, base)
-    summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
-                    resume=args.resume, iters=args.iters)
+    with _locked(RunDir(args.out).lock, "shells-train"):
+        summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
+                        resume=args.resume, iters=args.iters)
     if "test" in summary and distributed.launched_rank() == 0:
         print(f"test PSNR {summary['test']['psnr']:.2f} dB over {summary['test']['n_views']} "
-              f"views; checkpoint {args.out}/checkpoint.pt")
+              f"views ({summary['seconds']:.0f} s, {summary['rays_per_s']:.0f} rays/s); "
+              f"checkpoint {args.out}/checkpoint.pt")
     return 0
 
 
 def train_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_train, train_parser(), argv)
+    return _run(_train, train_parser(), argv, ("shells.training",))
 
 
 def extract_parser() -> argparse.ArgumentParser:
@@ -215,7 +262,10 @@ def _extract(args: argparse.Namespace) -> int:
 
     if args.fixed_band is not None and not args.fixed_band > 0:
         raise InputError(f"--fixed-band {args.fixed_band}: must be > 0 world units (e.g. 0.02)")
-    stats = extract_run(args.run, args.resolution, args.fixed_band, args.config)
+    from shells.run import RunDir
+
+    with _locked(RunDir(args.run).lock, "shells-extract"):
+        stats = extract_run(args.run, args.resolution, args.fixed_band, args.config)
     bw = stats.get("band_width", {})
     print(f"outer: {stats['outer_triangles']} triangles, inner: {stats['inner_triangles']} "
           f"triangles ({'empty: no interior termination' if stats['inner_empty'] else 'ok'})")
@@ -228,7 +278,8 @@ def _extract(args: argparse.Namespace) -> int:
 
 
 def extract_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_extract, extract_parser(), argv)
+    return _run(_extract, extract_parser(), argv,
+                ("shells.pipeline", "shells.levelset.extract", "shells.levelset.figure"))
 
 
 def finetune_parser() -> argparse.ArgumentParser:
@@ -251,15 +302,18 @@ def finetune_parser() -> argparse.ArgumentParser:
 def _finetune(args: argparse.Namespace) -> int:
     from shells.finetune import finetune
 
-    summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
-                       device=args.device)
+    from shells.run import RunDir
+
+    with _locked(RunDir(args.run).lock, "shells-finetune"):
+        summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
+                           device=args.device)
     if distributed.launched_rank() == 0:
         print(f"stage 2 done ({summary['step']} steps); checkpoint {args.run}/finetune.pt")
     return 0
 
 
 def finetune_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_finetune, finetune_parser(), argv)
+    return _run(_finetune, finetune_parser(), argv, ("shells.finetune",))
 
 
 def render_parser() -> argparse.ArgumentParser:
@@ -314,9 +368,19 @@ def _render(args: argparse.Namespace) -> int:
         if not (n >= 1 and 0 <= k < n):
             raise InputError(f"--shard {args.shard}: need 0 <= K < N")
         shard = (k, n)
-    m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
-                   height=args.height, out=args.out, stage=args.stage, config=args.config,
-                   spp=args.spp, path=args.path, frames=args.frames, fps=args.fps, shard=shard)
+    import contextlib
+
+    from shells.pipeline import render_out
+    from shells.run import RunDir, output_lock
+
+    out = render_out(RunDir(args.run), args.mode, args.path, args.out)
+    guard = (contextlib.nullcontext() if shard is not None  # shards share OUT by design
+             else _locked(output_lock(out), "shells-render"))
+    with guard:
+        m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
+                       height=args.height, out=args.out, stage=args.stage, config=args.config,
+                       spp=args.spp, path=args.path, frames=args.frames, fps=args.fps,
+                       shard=shard)
     if distributed.launched_rank() != 0:
         return 0
     if m.get("complete") is False:
@@ -331,7 +395,9 @@ def _render(args: argparse.Namespace) -> int:
 
 
 def render_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_render, render_parser(), argv)
+    return _run(_render, render_parser(), argv,
+                ("shells.pipeline", "shells.render.views", "shells.fields.drjit_field",
+                 "shells.camera_paths"))
 
 
 def demo_parser() -> argparse.ArgumentParser:

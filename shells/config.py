@@ -120,6 +120,9 @@ class ShellConfig:
     # and v_max dt < cfl h up to resolution 256 (one sub-step per step)
     min_component_fraction: float = 0.01  # drop mesh pieces smaller than this share of faces
     chunk: int = 262144  # grid points per field evaluation
+    memory_mb: int = 2048  # memory budget of the level-set evolution, MiB: a band of more voxels
+    # than fit (shells/levelset/evolve.py, BYTES_PER_BAND_VOXEL) is updated in chunks (same
+    # result), so a 512^3 extraction stays in bounded memory
 
 
 @dataclass
@@ -136,6 +139,9 @@ class RenderConfig:
     variant: str | None = None  # Mitsuba variant; None: from the torch device (cuda_ad_rgb on
     # CUDA, llvm_ad_rgb on the CPU)
     chunk_samples: int = 1 << 24  # rays per batch are limited to this many samples (worst case)
+    memory_mb: int = 1024  # memory budget of the ray batches, MiB: a batch holds as many rays as
+    # fit with their worst-case samples (shells/render/frame.py, rays_per_batch), and a frame
+    # larger than one batch is rendered in tiles of rows, so an 8K frame stays in bounded memory
     # `occupancy` mode (Instant-NGP / nerfacc baseline, shells/render/occupancy.py):
     occ_resolution: int = 128  # occupancy-grid cells per axis over the scene box
     occ_k: float = 5.0  # occupied where |f| < half cell diagonal + occ_k * s (residual T < e^-k)
@@ -320,9 +326,11 @@ _RULES = [_rule(k, *r) for k, r in [
                                            "v_max")],
     ("shell.min_component_fraction", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),
     ("shell.chunk", _at_least(1)),
+    ("shell.memory_mb", _at_least(1)),
     ("render.spp", _SQUARE),
     *[(f"render.{k}", _at_least(1)) for k in ("dp_max", "n_max", "full_samples",
-                                             "chunk_samples", "occ_resolution", "occ_chunk")],
+                                             "chunk_samples", "occ_resolution", "occ_chunk",
+                                             "memory_mb")],
     *[(f"render.{k}", _at_least(0)) for k in ("w_s", "occ_jitter", "occ_step")],
     *[(f"render.{k}", _positive()) for k in ("delta_s", "occ_k")],
     ("render.ert_eps", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),

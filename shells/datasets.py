@@ -19,6 +19,13 @@ Real captures such as instant-ngp's fox list frames whose photos were left out o
 distribution: Instant-NGP frames with a missing image are skipped with a warning (and listed
 in ``meta["skipped_frames"]``); in the Blender format a missing image is an error.
 
+Pixels: 8- and 16-bit PNG (16-bit values scaled by 65535; decoded with Mitsuba's PNG reader,
+as Pillow reduces 16-bit colour to 8 bits), JPEG, grey (broadcast to RGB), grey + alpha,
+palette (converted to RGB / RGBA). A truncated or corrupt file, an image of another size than
+the others or than the file's ``w``/``h``, an empty or duplicated frame, a focal length that is
+not positive or a principal point far outside the image, or a transforms file above
+`MAX_TRANSFORMS_BYTES` is a one-line InputError naming the file.
+
 Downscaling by an integer factor f averages f x f blocks (area averaging, after compositing);
 the image is cropped at the bottom/right to a multiple of f, which keeps the principal point.
 """
@@ -27,6 +34,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -45,6 +53,10 @@ BLENDER_AABB = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))  # NeRF-synthetic conventio
 NGP_SCALE = 0.33  # instant-ngp's default world -> unit-cube scale
 NGP_OFFSET = (0.5, 0.5, 0.5)  # instant-ngp's default offset
 HOLDOUT_EVERY = 8  # Instant-NGP data without split files: frames 0, 8, 16, ... are "test"
+MAX_TRANSFORMS_BYTES = 64 << 20  # a transforms file above this is refused before it is parsed
+# (a frame takes ~0.5 KB: 64 MiB is over 100k frames; a bigger file is not a transforms file)
+_MITSUBA = threading.Lock()  # 16-bit PNGs are decoded by Mitsuba, one at a time
+PRINCIPAL_POINT_MARGIN = 1.0  # cx, cy may lie this many image sizes outside the image, no more
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "camera_angle_x", "camera_angle_y", "cx", "cy", "w", "h",
                    "k1", "k2", "p1", "p2", "k3", "k4", "is_fisheye")
@@ -158,6 +170,10 @@ def _focal(d: dict, w: int, h: int, src: Path) -> tuple[float, float]:
     """fx, fy from fl_x/fl_y or camera_angle_x/y; one axis falls back to the other."""
     fx = d.get("fl_x")
     fy = d.get("fl_y")
+    for key in ("camera_angle_x", "camera_angle_y"):
+        if d.get(key) is not None and not 0 < float(d[key]) < math.pi:
+            raise InputError(f"{src}: '{key}' = {d[key]!r}: the field of view must be between 0 "
+                             "and pi radians; fix the file")
     if fx is None and d.get("camera_angle_x") is not None:
         fx = 0.5 * w / math.tan(0.5 * float(d["camera_angle_x"]))
     if fy is None and d.get("camera_angle_y") is not None:
@@ -182,12 +198,28 @@ def _frame_intrinsics(glob: dict, frame: dict) -> dict:
     return d
 
 
+def _bad_image(path: Path, exc: BaseException) -> InputError:
+    """The one-line error for an image no decoder reads (truncated, corrupt, not an image)."""
+    why = (str(exc).strip().splitlines() or [type(exc).__name__])[0].strip().rstrip(".")
+    return InputError(f"{path}: cannot decode image ({why[:120]}); the file is truncated or "
+                      "corrupt: replace it with a valid PNG or JPEG")
+
+
+def _png16(path: Path) -> bool:
+    """A PNG with 16 bits per sample (read from its IHDR header)."""
+    with open(path, "rb") as fh:
+        head = fh.read(26)
+    return head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and head[24] == 16
+
+
 def _image_shape(path: Path) -> tuple[int, int, int]:
     """(width, height, channels) from the image header."""
     try:
         shape = iio.improps(path).shape
     except Exception as exc:  # noqa: BLE001 - any decoder failure is a bad file
-        raise InputError(f"{path}: cannot read image ({exc}); replace the file")
+        raise _bad_image(path, exc)
+    if len(shape) < 2 or min(shape[:2]) < 1:
+        raise InputError(f"{path}: image of shape {shape}; replace it with a valid image")
     return int(shape[1]), int(shape[0]), int(shape[2]) if len(shape) > 2 else 1
 
 
@@ -227,9 +259,12 @@ def _box(value: Any, src: Path) -> np.ndarray:  # -> [2, 3]
 
 def _parse(src: Path, root: Path, skip_missing: bool) -> tuple[list, dict]:
     """Frames of one transforms file: (image path, c2w_gl [4, 4], intrinsics, src) each."""
-    data = read_json(src, "transforms file")
+    data = read_json(src, "transforms file", MAX_TRANSFORMS_BYTES)
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
         raise InputError(f"{src}: expected a JSON object with a 'frames' list; fix the file")
+    if not data["frames"]:
+        raise InputError(f"{src}: the 'frames' list is empty; add the posed images (file_path "
+                         "and transform_matrix per frame)")
     glob = {k: v for k, v in data.items() if k != "frames"}
     frames, skipped = [], []
     for k, frame in enumerate(data["frames"]):
@@ -247,7 +282,7 @@ def _parse(src: Path, root: Path, skip_missing: bool) -> tuple[list, dict]:
                 continue
             raise InputError(f"{path}: image file of frame {k} in {src.name} not found; add "
                              "the image or remove the frame")
-        frames.append((path, c2w, _frame_intrinsics(glob, frame), src))
+        frames.append((path, c2w, _frame_intrinsics(glob, frame), src, k))
     if skipped:
         warnings.warn(f"{src}: skipped {len(skipped)} of {len(data['frames'])} frames whose image "
                       f"is missing (first: {skipped[0]})", stacklevel=3)
@@ -260,7 +295,7 @@ def _cameras(frames: list) -> Cameras:
     first = frames[0][0]
     width, height, _ = _image_shape(first)
     fx, fy, cx, cy, dist = [], [], [], [], []
-    for path, _, intr, src in frames:
+    for path, _, intr, src, _ in frames:
         try:
             if "w" in intr or "h" in intr:  # the image file is the truth; the JSON must agree
                 w, h = int(intr.get("w", width)), int(intr.get("h", height))
@@ -282,6 +317,11 @@ def _cameras(frames: list) -> Cameras:
         if not (f[0] > 0 and f[1] > 0 and all(map(math.isfinite, [*f, *k, *c]))):
             raise InputError(f"{src}: focal lengths {f} / intrinsics of frame {path.name} must be "
                              "finite with positive focal lengths; fix the file")
+        m = PRINCIPAL_POINT_MARGIN
+        if not (-m * width <= c[0] <= (1 + m) * width and -m * height <= c[1] <= (1 + m) * height):
+            raise InputError(f"{src}: principal point (cx, cy) = ({c[0]:g}, {c[1]:g}) of frame "
+                             f"{path.name} is far outside the {width}x{height} image (pixels, "
+                             "origin top-left); fix 'cx'/'cy'")
         fx.append(f[0])
         fy.append(f[1])
         cx.append(c[0])
@@ -321,6 +361,13 @@ def read_frames(root: str | Path, split: str = "train", skip_missing: bool | Non
         fr, glob = _parse(src, root, skip_missing)
         frames += fr
         meta = {**glob, **meta}
+    seen: dict[Path, tuple[Path, int]] = {}
+    for path, _, _, src, k in frames:
+        if path in seen:
+            s0, k0 = seen[path]
+            raise InputError(f"{src}: frame {k} uses image {path.name}, as frame {k0} of "
+                             f"{s0.name} does; remove the duplicate frame")
+        seen[path] = (src, k)
     if not frames:
         raise InputError(f"{files[0]}: no frames with an existing image; check the file paths")
     if holdout == "test":
@@ -347,9 +394,15 @@ def read_frames(root: str | Path, split: str = "train", skip_missing: bool | Non
 def _read_image(path: Path) -> tuple[torch.Tensor, torch.Tensor | None]:
     """RGB [H, W, 3] and alpha [H, W] (or None) as float32 in [0, 1]."""
     try:
-        a = iio.imread(path)
+        if _png16(path):  # Pillow would reduce 16-bit colour to 8 bits; Mitsuba keeps them
+            with _MITSUBA:  # its lazy module set-up is not safe from several threads at once
+                import mitsuba as mi
+
+                a = np.array(mi.Bitmap(str(path)))
+        else:
+            a = iio.imread(path)
     except Exception as exc:  # noqa: BLE001 - any decoder failure is a bad file
-        raise InputError(f"{path}: cannot decode image ({exc}); replace the file")
+        raise _bad_image(path, exc)
     if a.ndim == 2:
         a = a[:, :, None]
     if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4):

@@ -44,7 +44,7 @@ from shells.config import Config
 from shells.errors import InputError, Interrupted
 from shells.fields.hashgrid import HashGrid
 from shells.fields.network import ShellField
-from shells.run import append_log, save_checkpoint, truncate_log
+from shells.run import append_log, load_field_state, save_checkpoint, truncate_log
 
 ShardLoss = Callable[[torch.Generator], tuple[torch.Tensor, dict[str, float]]]
 
@@ -159,12 +159,16 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
         if start >= sched.iters:
             raise InputError(f"{checkpoint}: already trained {start} steps; pass a larger "
                              f"--iters to continue")
-        field.load_state_dict(resume["field"])
-        opt.load_state_dict(resume["optimizer"])
+        load_field_state(field, resume["field"], str(checkpoint))
+        try:
+            opt.load_state_dict(resume["optimizer"])
+        except (ValueError, KeyError) as exc:
+            raise InputError(f"{checkpoint}: the optimiser state does not fit the field ({exc});"
+                             " the checkpoint is of another architecture: re-train") from None
         if state is not None and resume.get("extra") is not None:
             state.load_state_dict(resume["extra"])
-        if w.main:
-            truncate_log(log, start)
+    if w.main:  # records past the checkpoint (or of an attempt stopped before the first one)
+        truncate_log(log, start)
     mine = list(range(w.rank, sched.shards, w.size))  # this rank's shards
     shard = _Shard(field, shard_loss)
     model: torch.nn.Module = shard

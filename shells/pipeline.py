@@ -24,9 +24,10 @@ from typing import Any
 import torch
 
 from shells.config import override_config
-from shells.errors import InputError, write_json
+from shells.errors import WRITE_ERRNOS, InputError, Interrupted, commit_files, write_json
 from shells.metrics import PROTOCOL
-from shells.run import RunDir, load_field, load_shells, read_run, resolve_stage
+from shells.run import (RunDir, field_from_checkpoint, load_field, load_shells, read_checkpoint,
+                        read_run, resolve_stage, shells_source)
 
 
 def extract_run(run_dir: str | Path, resolution: int | None = None,
@@ -37,11 +38,28 @@ def extract_run(run_dir: str | Path, resolution: int | None = None,
     ``fixed_width`` w gives the fixed band {|f| <= w} instead of the adaptive one (ablation);
     ``config``: a JSON file with a ``shell`` section overriding the run's shell settings.
     """
+    run = RunDir(run_dir)
+    try:
+        return _extract(run, resolution, fixed_width, config)
+    except KeyboardInterrupt:
+        raise Interrupted(f"shells-extract interrupted; {run.shells} is as it was before; run "
+                          "it again", status=130) from None
+    except OSError as exc:
+        named = _named(exc, run.shells)
+        if named is exc:
+            raise
+        raise named from exc
+
+
+def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
+             config: str | Path | None) -> dict[str, Any]:
     from shells.levelset.extract import extract_shells, write_shells
     from shells.levelset.grid import sample_grid_banded
 
-    run = RunDir(run_dir)
-    field, cfg = load_field(run.root, stage="stage1")
+    ckpt = read_checkpoint(run, "stage1")
+    field, cfg = field_from_checkpoint(ckpt, str(run.checkpoint("stage1")))
+    source = shells_source(run, ckpt["step"])
+    del ckpt
     override_config(cfg, config, ("shell",), "shells-extract")
     if resolution is not None:
         cfg.update({"shell": {"resolution": resolution}}, "--resolution")
@@ -63,8 +81,16 @@ def extract_run(run_dir: str | Path, resolution: int | None = None,
     shells.stats["timings_s"]["sample_grid"] = t_grid
     shells.stats["grid_exact_fraction"] = exact
     shells.stats["timings_s"]["total"] = time.perf_counter() - t0
+    shells.stats["source"] = source  # which run and stage-1 step (shells.run.check_shells)
     write_shells(shells, run.shells)
     return shells.stats
+
+
+def _named(exc: OSError, out: Path) -> OSError:
+    """A refused write without a file name (a full disk) named by the output it was for."""
+    if exc.filename is None and exc.errno in WRITE_ERRNOS:
+        return OSError(exc.errno, exc.strerror, str(out))
+    return exc
 
 
 def check_run(run: RunDir, mode: str) -> dict[str, Any]:
@@ -79,6 +105,15 @@ def check_run(run: RunDir, mode: str) -> dict[str, Any]:
     if mode == "band" and not run.outer.is_file():
         raise InputError(f"{run.outer}: no outer shell; run shells-extract first")
     return meta
+
+
+def render_out(run: RunDir, mode: str, path: str | None, out: str | Path | None) -> Path:
+    """The folder a render writes: ``out``, else RUN/render-MODE (a split) or RUN/path-NAME."""
+    if out is not None:
+        return Path(out)
+    if path:
+        return run.root / f"path-{path if path in ('orbit', 'spiral', 'interpolate') else Path(path).stem}"
+    return run.render_dir(mode)
 
 
 def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
@@ -104,7 +139,6 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     from shells.datasets import load_dataset
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
-    from shells.render.views import render_views
 
     run = RunDir(run_dir)
     meta = check_run(run, mode)
@@ -124,15 +158,12 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
         cams, file_fps = camera_path(path, data.cameras, data.aabb, frames, width, height)
         fps = fps or file_fps or 30.0
         images, same_size = None, False
-        name = Path(path).stem if path not in ("orbit", "spiral", "interpolate") else path
-        default_out = run.root / f"path-{name}"
     else:
         cams = data.cameras.resized(width, height)
         same_size = (cams.width, cams.height) == (data.cameras.width, data.cameras.height)
         images = data.images if same_size else None
-        default_out = run.render_dir(mode)
     dj = DrJitField(field)
-    out = Path(out) if out is not None else default_out
+    out = render_out(run, mode, path, out)
     extra = {
         "split": None if path else split, "path": path, "variant": variant,
         "stage": loaded, "out": str(out),
@@ -151,6 +182,27 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                              "ranks share the frames by themselves")
         return _render_shard(dj, cams, images, rc, mode, scene, data.aabb, progress, bg, out,
                              shard, extra)
+    try:
+        return _render_all(dj, cams, images, rc, mode, scene, data.aabb, progress, bg, out,
+                           extra)
+    except KeyboardInterrupt:
+        raise Interrupted(f"shells-render interrupted; {out} is as it was before; run it again",
+                          status=130) from None
+    except OSError as exc:
+        named = _named(exc, out)
+        if named is exc:
+            raise
+        raise named from exc
+
+
+def _render_all(dj: Any, cams: Any, images: Any, rc: Any, mode: str, scene: Any, aabb: Any,
+                progress: bool, bg: tuple[float, float, float], out: Path,
+                extra: dict[str, Any]) -> dict[str, Any]:
+    """All frames by this process (or its share under torchrun) into a hidden folder beside
+    OUT, moved into OUT when all are done."""
+    from shells import distributed
+    from shells.render.views import render_views
+
     w = distributed.world()  # the CPU group (gloo) coordinates; each rank renders on its own
     tmp = None
     if w.main:
@@ -158,7 +210,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
         tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
     tmp = Path(distributed.broadcast_object(str(tmp) if tmp else None))
     try:
-        metrics = render_views(dj, cams, images, rc, mode, scene, data.aabb, tmp, progress, bg,
+        metrics = render_views(dj, cams, images, rc, mode, scene, aabb, tmp, progress, bg,
                                world=w)
         distributed.barrier()  # every rank's frames are in tmp
         metrics.update(extra)
@@ -178,10 +230,7 @@ def _finish(tmp: Path, out: Path, metrics: dict[str, Any]) -> None:
     if metrics.get("path"):
         write_video(sorted(tmp.glob("r_*.png")), tmp / "video.mp4", metrics["fps"])
     write_json(tmp / "metrics.json", metrics)
-    out.mkdir(parents=True, exist_ok=True)
-    names = sorted(p.name for p in tmp.iterdir())
-    for n in [n for n in names if n != "metrics.json"] + ["metrics.json"]:
-        os.replace(tmp / n, out / n)  # metrics.json last: it marks a complete render
+    commit_files(tmp, out, last="metrics.json")  # metrics.json last: it marks a complete render
 
 
 def _render_shard(field: Any, cams: Any, images: Any, rc: Any, mode: str, scene: Any,

@@ -12,6 +12,16 @@ Layout::
     RUN/finetune_log.jsonl    stage 2 log
     RUN/finetune_summary.json stage 2 finished
     RUN/render-MODE/          images and metrics.json (shells-render)
+    RUN/.lock                 held by the command writing the run (`lock`): pid, host, command
+
+Versions and identity: run.json holds ``format`` (`FORMAT_VERSION`, the layout of the run
+directory and its files) and ``run_id`` (random, made by shells-train); checkpoints hold both
+too, and shells/stats.json holds the run id and the stage-1 step the shells were extracted
+from. A run of another format, a checkpoint whose tensors do not fit its architecture, a
+checkpoint of another run, or shells of another run (or of an older stage-1 checkpoint) are
+refused with a one-line InputError saying what to re-run. Runs written before the version
+existed have no ``format``: they are version 1, today's layout, and are read as before (and
+without the identity checks, as they carry no ids).
 
 This is the only module that knows these names. It sits above fields/, levelset/ and render/
 (it builds their objects from the files) and below the training stages, the pipeline and the
@@ -20,10 +30,15 @@ CLI, which reach the run only through it.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import socket
+import time
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import torch
 
@@ -32,6 +47,7 @@ from shells.errors import InputError, atomic_write, read_json, write_json
 from shells.fields.network import ShellField
 
 STAGES = ("stage1", "stage2")
+FORMAT_VERSION = 1  # the run directory's layout; a missing "format" key means 1
 
 
 @dataclass(frozen=True)
@@ -74,26 +90,135 @@ class RunDir:
     def render_dir(self, mode: str) -> Path:
         return self.root / f"render-{mode}"
 
+    @property
+    def lock(self) -> Path:
+        return self.root / ".lock"
+
+
+def output_lock(out: str | Path) -> Path:
+    """The lock file of an output folder that is not a run (a render's OUT): beside it."""
+    out = Path(os.path.abspath(out))
+    return out.parent / f".{out.name}.lock"
+
+
+# ---------------------------------------------------------------------------------------------
+# Locks: one writer per run (or output folder) at a time
+# ---------------------------------------------------------------------------------------------
+
+def _start_time(pid: int) -> str | None:
+    """The process's start time (Linux /proc, clock ticks since boot): tells a live owner from a
+    new process that reuses its pid. None where /proc is missing or the pid is gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]
+
+
+def _alive(owner: dict[str, Any]) -> bool:
+    """Whether the process that wrote a lock still runs (True when it cannot be told: another
+    host)."""
+    if owner.get("host") != socket.gethostname():
+        return True
+    pid = int(owner.get("pid", -1))
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # someone else's live process
+    started = _start_time(pid)
+    return owner.get("started") is None or started is None or started == owner["started"]
+
+
+@contextlib.contextmanager
+def lock(path: str | Path, command: str) -> Iterator[None]:
+    """Hold the lock file ``path`` (e.g. `RunDir.lock`) for the block: a second command finds
+    it held by a live process and gets a one-line InputError at once; a lock left by a process
+    that is gone (killed) is stale and taken over. A folder the lock had to create is removed
+    again when the block leaves nothing else in it (bad input writes nothing)."""
+    path = Path(os.path.abspath(path))
+    created = [d for d in path.parents if not d.exists()]  # innermost first
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _start_time(os.getpid()),
+          "command": command, "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+    for attempt in range(2):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}")
+        tmp.write_text(json.dumps(me) + "\n")
+        try:
+            os.link(tmp, path)  # atomic: the lock appears with its content, or not at all
+            break
+        except FileExistsError:
+            try:
+                owner = json.loads(path.read_text())
+            except (OSError, ValueError):
+                owner = {}  # removed meanwhile, or not ours: stale
+            if attempt == 0 and not _alive(owner):
+                path.unlink(missing_ok=True)
+                continue
+            raise InputError(
+                f"{path.parent}: in use by {owner.get('command', 'another command')} (pid "
+                f"{owner.get('pid', '?')} on {owner.get('host', '?')}, since "
+                f"{owner.get('since', '?')}); wait for it to end, or delete {path} if that "
+                "process is gone") from None
+        finally:
+            tmp.unlink(missing_ok=True)
+    try:
+        yield
+    finally:
+        try:
+            if json.loads(path.read_text()).get("pid") == os.getpid():
+                path.unlink()
+        except (OSError, ValueError):
+            pass
+        for d in created:
+            try:
+                d.rmdir()  # only if empty: nothing was written
+            except OSError:
+                break
+
 
 # ---------------------------------------------------------------------------------------------
 # run.json and config.json
 # ---------------------------------------------------------------------------------------------
 
 def write_run(run: RunDir, data: str | Path, downscale: int, device: str, cfg: Config) -> None:
-    """Create RUN with its description (run.json) and the config it is trained with."""
+    """Create RUN with its description (run.json: format version, a new run id) and the config
+    it is trained with."""
     run.root.mkdir(parents=True, exist_ok=True)
-    write_json(run.run_json, {"data": str(Path(data).resolve()), "downscale": int(downscale),
+    write_json(run.run_json, {"format": FORMAT_VERSION, "run_id": uuid.uuid4().hex,
+                              "data": str(Path(data).resolve()), "downscale": int(downscale),
                               "device": str(device)})
     write_json(run.config, cfg.to_dict())
 
 
+def _check_format(version: Any, path: Path) -> None:
+    if version != FORMAT_VERSION:
+        import shells
+
+        raise InputError(f"{path}: written in run format {version!r}, but shells "
+                         f"{shells.__version__} "
+                         f"reads format {FORMAT_VERSION}; re-train the run with this version "
+                         "(shells-train --out NEW_RUN) or use the shells version that wrote it")
+
+
 def read_run(run: RunDir) -> dict[str, Any]:
-    """run.json as a dict with at least 'data' and 'downscale'; one-line errors."""
+    """run.json as a dict with at least 'data', 'downscale' and 'format' (1 when absent: runs
+    written before the version existed); one-line errors."""
     meta = read_json(run.run_json, "run description (run.json); run shells-train first")
     if not isinstance(meta, dict) or "data" not in meta:
         raise InputError(f"{run.run_json}: missing key 'data'; re-run shells-train")
+    meta.setdefault("format", 1)
+    _check_format(meta["format"], run.run_json)
     meta.setdefault("downscale", 1)
     return meta
+
+
+def run_id(run: RunDir) -> str | None:
+    """The run's id from run.json (None for runs written before ids existed, or none yet)."""
+    return read_run(run).get("run_id") if run.run_json.is_file() else None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -103,12 +228,47 @@ def read_run(run: RunDir) -> dict[str, Any]:
 def save_checkpoint(path: Path, field: ShellField, opt: torch.optim.Optimizer, step: int,
                     cfg: Config, extra: dict[str, Any] | None = None) -> None:
     """Field, optimiser, step, config and a stage's extra state (its occupancy grid) in one
-    file, written atomically."""
-    state = {"step": step, "field": field.state_dict(), "optimizer": opt.state_dict(),
+    file, written atomically, with the format version and the id of the run it is in (RUN =
+    the file's folder)."""
+    state = {"format": FORMAT_VERSION, "run_id": run_id(RunDir(Path(path).parent)),
+             "step": step, "field": field.state_dict(), "optimizer": opt.state_dict(),
              "config": cfg.to_dict(), "aabb": field.aabb.detach().cpu()}
     if extra is not None:
         state["extra"] = extra
-    atomic_write(path, lambda p: torch.save(state, p))
+    def write(p: Path) -> None:
+        try:
+            torch.save(state, p)
+        except RuntimeError as exc:  # torch's writer reports a full disk this way
+            if "write" not in str(exc) and "unexpected pos" not in str(exc):
+                raise
+            why = (str(exc).splitlines() or [""])[0][:100]
+            raise InputError(f"{path}: writing the checkpoint failed ({why}); is the disk full? "
+                             "Free space and continue with --resume (the previous checkpoint "
+                             "is intact)") from None
+
+    atomic_write(path, write)
+
+
+def checkpoint_config(ckpt: dict[str, Any], source: str) -> Config:
+    """The config a checkpoint stores; one line saying to re-train when this version cannot
+    read it (a key it does not know: another shells version)."""
+    try:
+        return Config.from_dict(ckpt["config"], source)
+    except InputError as exc:
+        raise InputError(f"{exc}; the checkpoint is of another shells version or architecture: "
+                         "re-train the run (shells-train)") from None
+
+
+def load_field_state(field: ShellField, state: dict[str, Any], source: str) -> None:
+    """``field.load_state_dict(state)``; tensors of another architecture (other names or
+    shapes) are a one-line InputError instead of torch's report."""
+    try:
+        field.load_state_dict(state)
+    except RuntimeError as exc:
+        why = " ".join(str(exc).split("\n", 2)[1:2]).strip().rstrip(".")[:160]
+        raise InputError(f"{source}: the field's tensors do not fit the architecture of its "
+                         f"config ({why}); the checkpoint is of another architecture or version:"
+                         " re-train the run (shells-train)") from None
 
 
 def read_checkpoint(run: RunDir, stage: str = "stage1") -> dict[str, Any]:
@@ -118,10 +278,19 @@ def read_checkpoint(run: RunDir, stage: str = "stage1") -> dict[str, Any]:
         fix = ("run shells-train first (or pass the right RUN)" if stage == "stage1" else
                f"run shells-finetune {run.root} first (or render --stage stage1)")
         raise InputError(f"{path}: no {stage} checkpoint; {fix}")
+    meta = read_run(run) if run.run_json.is_file() else {}
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # corrupt or foreign file
         raise InputError(f"{path}: unreadable checkpoint ({type(exc).__name__}); retrain")
+    if not isinstance(ckpt, dict) or not {"step", "field", "config", "aabb"} <= set(ckpt):
+        raise InputError(f"{path}: not a shells checkpoint (no step / field / config); retrain")
+    _check_format(ckpt.get("format", 1), path)
+    if ckpt.get("run_id") and meta.get("run_id") and ckpt["run_id"] != meta["run_id"]:
+        raise InputError(f"{path}: the checkpoint belongs to another run (id {ckpt['run_id'][:8]}"
+                         f", this run is {meta['run_id'][:8]}); copy whole run folders, or "
+                         "re-train this one")
+    return ckpt
 
 
 def resolve_stage(run: RunDir, stage: str) -> str:
@@ -137,9 +306,9 @@ def resolve_stage(run: RunDir, stage: str) -> str:
 def field_from_checkpoint(ckpt: dict[str, Any], source: str,
                           device: str | torch.device = "cpu") -> tuple[ShellField, Config]:
     """The field (eval mode) and config stored in a checkpoint dict."""
-    cfg = Config.from_dict(ckpt["config"], source)
+    cfg = checkpoint_config(ckpt, source)
     field = ShellField(cfg.field, ckpt["aabb"]).to(device)
-    field.load_state_dict(ckpt["field"])
+    load_field_state(field, ckpt["field"], source)
     field.eval()
     return field, cfg
 
@@ -164,11 +333,46 @@ def load_shells(run: RunDir, variant: str | None = None) -> Any:
 
     if not run.outer.is_file():
         raise InputError(f"{run.outer}: no outer shell; run shells-extract {run.root} first")
+    check_shells(run)
     outer = load_ply(run.outer)
     if len(outer[1]) == 0:
         raise InputError(f"{run.outer}: the outer shell is empty; re-run shells-extract")
     inner = load_ply(run.inner) if run.inner.is_file() else None
     return ShellScene(outer, inner, variant)
+
+
+def shells_source(run: RunDir, step: int) -> dict[str, Any]:
+    """What shells/stats.json records of where its shells come from (`check_shells`)."""
+    return {"run_id": run_id(run), "stage1_step": int(step)}
+
+
+def check_shells(run: RunDir) -> None:
+    """Refuse shells extracted in another run or from an older stage-1 checkpoint (their
+    stats.json says where they come from; shells without that record are accepted)."""
+    stats_path = run.shells / "stats.json"
+    if not stats_path.is_file():
+        return
+    src = read_json(stats_path, "shell statistics").get("source") or {}
+    fix = f"re-extract them with shells-extract {run.root}"
+    mine = run_id(run)
+    if src.get("run_id") and mine and src["run_id"] != mine:
+        raise InputError(f"{run.shells}: the shells were extracted in another run (id "
+                         f"{src['run_id'][:8]}, this run is {mine[:8]}); {fix}")
+    if src.get("stage1_step") is not None and run.checkpoint("stage1").is_file():
+        step = _step(run)
+        if step is not None and step != src["stage1_step"]:
+            raise InputError(f"{run.shells}: the shells were extracted from step "
+                             f"{src['stage1_step']} of {run.checkpoint('stage1').name}, which "
+                             f"is now at step {step}; {fix}")
+
+
+def _step(run: RunDir) -> int | None:
+    """The step of the stage-1 checkpoint (memory-mapped: the tensors are not read)."""
+    try:
+        return int(torch.load(run.checkpoint("stage1"), map_location="cpu", mmap=True,
+                              weights_only=False)["step"])
+    except Exception:  # noqa: BLE001 - unreadable: read_checkpoint reports it where it matters
+        return None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -87,16 +87,24 @@ def substeps(v_max: float, dt: float, spacing, cfl: float = 0.5) -> int:
     return max(1, int(math.ceil(abs(v_max) * dt / (cfl * h) - 1e-9)))
 
 
+BYTES_PER_BAND_VOXEL = 200  # memory of one band voxel in a step: 19 neighbour indices and
+# ~25 float temporaries (4 bytes each); the band is split into chunks that fit the budget
+
+
 def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world units)
            v: np.ndarray,  # [X, Y, Z] normal speed: > 0 moves the zero set outward, < 0 inward
            spacing,  # (3,) grid spacing in world units
            steps: int, dt: float, zeta: float, lambda_curv: float,
-           cfl: float = 0.5, device: str | torch.device = "cpu") -> np.ndarray:  # [X, Y, Z]
+           cfl: float = 0.5, device: str | torch.device = "cpu",
+           memory_mb: int = 2048) -> np.ndarray:  # [X, Y, Z]
     """Integrate df/dt = -|grad f| (v - lambda_curv h^2 kappa) w(f) for total time steps * dt.
 
     Central differences (one-sided at the grid border), forward Euler with the sub-steps of
     `substeps`; only the band |f0| < zeta is updated (see the module docstring for units).
-    Returns the evolved grid as float32 numpy.
+    A band larger than ``memory_mb`` allows (`BYTES_PER_BAND_VOXEL`) is updated in chunks
+    whose neighbour indices are rebuilt every step; each step still reads the grid of the
+    step before (the chunks' new values are written back together), so the result is the same,
+    bit for bit. Returns the evolved grid as float32 numpy.
     """
     f0 = np.asarray(f0, dtype=np.float32)
     assert f0.ndim == 3 and np.shape(v) == f0.shape, (f0.shape, np.shape(v))
@@ -113,37 +121,72 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
     threads = torch.get_num_threads()
     if band.size < (1 << 21) and f.device.type == "cpu":
         torch.set_num_threads(1)
+    chunk = max(1024, (int(memory_mb) << 20) // BYTES_PER_BAND_VOXEL)
     try:
-        return _integrate(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl)
+        if band.size <= chunk:
+            return _integrate(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl)
+        return _integrate_chunked(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
+                                  chunk)
     finally:
         torch.set_num_threads(threads)
+
+
+def _prepared(active: torch.Tensor, shape: tuple[int, int, int], h: np.ndarray,
+              with_diagonals: bool) -> dict:
+    """`_neighbours` with 'inv_d' as float32 1 / (world distance of the differences)."""
+    idx = _neighbours(active, shape, with_diagonals)
+    idx["inv_d"] = [(d / float(h[ax])).to(torch.float32) for ax, d in enumerate(idx["inv_d"])]
+    return idx
 
 
 def _integrate(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl) -> np.ndarray:
     n_sub = substeps(float(v_a.abs().max()), dt, h, cfl)
     dt_sub = dt / n_sub
     lam_w = float(lambda_curv) * float(h.min()) ** 2  # grid units -> world units (docstring)
-    idx = _neighbours(active, shape, with_diagonals=lam_w > 0.0)
-    # The loop below is the hot path: constants are folded so each step is ~26 tensor ops.
-    inv_d = [(d / float(h[ax])).to(torch.float32) for ax, d in enumerate(idx.pop("inv_d"))]
+    idx = _prepared(active, shape, h, with_diagonals=lam_w > 0.0)
+    for _ in range(steps * n_sub):
+        f.index_copy_(0, active, _step(f, idx, v_a, h, dt_sub, lam_w, zeta))
+    return f.reshape(shape).cpu().numpy()
+
+
+def _integrate_chunked(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
+                       chunk: int) -> np.ndarray:
+    """`_integrate` in chunks of the band: new values of all chunks into one buffer, written
+    back once per step (the grid a step reads is the grid of the step before)."""
+    n_sub = substeps(float(v_a.abs().max()), dt, h, cfl)
+    dt_sub = dt / n_sub
+    lam_w = float(lambda_curv) * float(h.min()) ** 2
+    new = torch.empty_like(v_a)
+    parts = [(a, min(a + chunk, active.numel())) for a in range(0, active.numel(), chunk)]
+    for _ in range(steps * n_sub):
+        for a, b in parts:
+            idx = _prepared(active[a:b], shape, h, with_diagonals=lam_w > 0.0)
+            new[a:b] = _step(f, idx, v_a[a:b], h, dt_sub, lam_w, zeta)
+            del idx
+        f.index_copy_(0, active, new)
+    return f.reshape(shape).cpu().numpy()
+
+
+def _step(f, idx: dict, v_a, h, dt_sub: float, lam_w: float, zeta: float) -> torch.Tensor:
+    """New values of the voxels idx['centre'] after one Euler sub-step (f is not changed).
+    The hot path: constants are folded so each step is ~26 tensor ops."""
+    inv_d = idx["inv_d"]
     half_dt_v = 0.5 * dt_sub * v_a  # w = (1 + cos) / 2 folded into the speed
     half_dt_lam = 0.5 * dt_sub * lam_w
     k_phase = math.pi / zeta
-    active32 = idx.pop("centre")
-    for _ in range(steps * n_sub):
-        fc = torch.index_select(f, 0, active32)
-        fp = [torch.index_select(f, 0, idx["p"][ax]) for ax in range(3)]
-        fm = [torch.index_select(f, 0, idx["m"][ax]) for ax in range(3)]
-        g = [(fp[ax] - fm[ax]).mul_(inv_d[ax]) for ax in range(3)]
-        gnorm2 = torch.addcmul(torch.addcmul(g[0] * g[0], g[1], g[1]), g[2], g[2])
-        gnorm = torch.sqrt(gnorm2)
-        rate = gnorm * half_dt_v  # dt |grad f| v / 2
-        if lam_w > 0.0:
-            curv = _curvature_times_grad(f, fc, fp, fm, g, gnorm2, gnorm, idx, h)
-            rate = rate.sub_(half_dt_lam * curv)
-        one_plus_cos = torch.cos(torch.clamp(fc * k_phase, -math.pi, math.pi)).add_(1.0)
-        f.index_copy_(0, active, fc.sub_(rate.mul_(one_plus_cos)))
-    return f.reshape(shape).cpu().numpy()
+    active32 = idx["centre"]
+    fc = torch.index_select(f, 0, active32)
+    fp = [torch.index_select(f, 0, idx["p"][ax]) for ax in range(3)]
+    fm = [torch.index_select(f, 0, idx["m"][ax]) for ax in range(3)]
+    g = [(fp[ax] - fm[ax]).mul_(inv_d[ax]) for ax in range(3)]
+    gnorm2 = torch.addcmul(torch.addcmul(g[0] * g[0], g[1], g[1]), g[2], g[2])
+    gnorm = torch.sqrt(gnorm2)
+    rate = gnorm * half_dt_v  # dt |grad f| v / 2
+    if lam_w > 0.0:
+        curv = _curvature_times_grad(f, fc, fp, fm, g, gnorm2, gnorm, idx, h)
+        rate = rate.sub_(half_dt_lam * curv)
+    one_plus_cos = torch.cos(torch.clamp(fc * k_phase, -math.pi, math.pi)).add_(1.0)
+    return fc.sub_(rate.mul_(one_plus_cos))
 
 
 def _neighbours(active: torch.Tensor,  # [A] flat indices of the band voxels (int64)
@@ -209,7 +252,7 @@ def shell_sdfs(f0: np.ndarray,  # [X, Y, Z] SDF, f > 0 outside
     """
     f0 = np.asarray(f0, dtype=np.float32)
     dil = evolve(f0, dilation_velocity(s, cfg), spacing, cfg.steps, cfg.dt, cfg.dilate_zeta,
-                 cfg.dilate_curvature, cfg.cfl, device)
+                 cfg.dilate_curvature, cfg.cfl, device, cfg.memory_mb)
     ero = evolve(f0, -erosion_velocity(s, cfg), spacing, cfg.steps, cfg.dt, cfg.erode_zeta,
-                 cfg.erode_curvature, cfg.cfl, device)
+                 cfg.erode_curvature, cfg.cfl, device, cfg.memory_mb)
     return np.minimum(f0, dil), np.maximum(f0, ero)

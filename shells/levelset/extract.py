@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import shutil
 import tempfile
 import time
@@ -24,7 +23,7 @@ import trimesh
 from scipy import ndimage
 
 from shells.config import ShellConfig
-from shells.errors import InputError
+from shells.errors import InputError, commit_files
 from shells.levelset.evolve import (dilation_velocity, erosion_velocity, shell_sdfs,
                                     substeps)
 from shells.levelset.grid import check_aabb
@@ -196,7 +195,8 @@ def write_shells(shells: Shells, out_dir: str | Path, figure: bool = True) -> No
     """Write out_dir/{outer.ply, inner.ply, stats.json[, slice.png]} all or nothing.
 
     Everything is written into a hidden staging folder next to ``out_dir`` first; only when
-    all files exist are they renamed into place, so a failure leaves ``out_dir`` as it was.
+    all files exist are they renamed into place (signals held back meanwhile), so a failure or
+    an interruption leaves ``out_dir`` as it was.
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -209,8 +209,6 @@ def write_shells(shells: Shells, out_dir: str | Path, figure: bool = True) -> No
             from shells.levelset.figure import slice_figure
             slice_figure(shells.f, shells.s, shells.sdf_plus, shells.sdf_minus, shells.aabb,
                          stage / "slice.png")
-        out_dir.mkdir(parents=True, exist_ok=True)
-        for item in sorted(stage.iterdir()):
-            os.replace(item, out_dir / item.name)
+        commit_files(stage, out_dir, last="stats.json")
     finally:
         shutil.rmtree(stage, ignore_errors=True)

@@ -80,11 +80,15 @@ def sample_grid_banded(fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Te
     box = check_aabb(aabb)
     spacing = (box[1] - box[0]) / (res - 1)
     fc, sc, spacing_c = sample_grid(fn, aabb, rc, chunk, device)
-    up = torch.nn.functional.interpolate(
-        torch.from_numpy(np.stack([fc, np.log(sc)]))[None], size=(res, res, res),
-        mode="trilinear", align_corners=True)[0]  # corner-inclusive grids line up
-    f = up[0].numpy().reshape(-1)
-    s = np.exp(up[1].numpy()).reshape(-1)
+
+    def upsample(x: np.ndarray) -> np.ndarray:  # one grid at a time: bounded memory at 512^3
+        return torch.nn.functional.interpolate(
+            torch.from_numpy(x)[None, None], size=(res, res, res), mode="trilinear",
+            align_corners=True)[0, 0].numpy().reshape(-1)  # corner-inclusive grids line up
+
+    f = upsample(fc)
+    s = upsample(np.log(sc))
+    np.exp(s, out=s)
     margin = lipschitz * math.sqrt(3.0) * float(np.max(spacing_c))
     todo = np.flatnonzero(np.abs(f) < band + margin)
     lo = torch.as_tensor(box[0], dtype=torch.float32, device=device)
@@ -98,5 +102,5 @@ def sample_grid_banded(fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Te
             f[idx] = sdf.reshape(-1).float().cpu().numpy()
             s[idx] = kernel.reshape(-1).float().cpu().numpy()
     shape = (res, res, res)
-    return (f.reshape(shape).astype(np.float32), s.reshape(shape).astype(np.float32), spacing,
-            len(todo) / res ** 3)
+    return (f.reshape(shape).astype(np.float32, copy=False),
+            s.reshape(shape).astype(np.float32, copy=False), spacing, len(todo) / res ** 3)

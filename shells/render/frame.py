@@ -37,6 +37,21 @@ from shells.render.sampler import place_packed
 from shells.render.shading import WHITE, composite_packed, end_colour, shade_samples
 
 MODES = ("band", "full", "occupancy")
+BYTES_PER_RAY = 512  # Dr.Jit and torch memory of a ray in a batch (origin, direction, shell
+# hits, colour, counts), besides its samples; an upper estimate
+BYTES_PER_SAMPLE = 96  # memory of one field sample (position, direction, t, section, ray
+# index, SDF, kernel, normal, colour, alpha); an upper estimate
+
+
+def rays_per_batch(cfg: RenderConfig, mode: str) -> int:
+    """Rays rendered at once: whole pixels (a multiple of cfg.spp) whose worst-case samples
+    fit both cfg.chunk_samples and the memory budget cfg.memory_mb."""
+    K = cfg.spp
+    per_ray = {"full": cfg.full_samples,  # occupancy: samples held per live ray and round
+               "occupancy": cfg.occ_chunk}.get(mode, ((cfg.dp_max + 1) // 2) * cfg.n_max)
+    by_samples = cfg.chunk_samples // max(per_ray * K, 1)
+    by_memory = (cfg.memory_mb << 20) // (K * (BYTES_PER_RAY + per_ray * BYTES_PER_SAMPLE))
+    return max(1, min(by_samples, by_memory)) * K
 
 
 def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
@@ -85,7 +100,8 @@ def render_image(field: Any,
                  aabb: Any = None,
                  background: tuple[float, float, float] = WHITE,
                  ) -> tuple[torch.Tensor, torch.Tensor]:  # rgb [H, W, 3] float32, spp [H, W] int
-    """A frame in ray chunks of at most cfg.chunk_samples samples (upper bound per ray).
+    """A frame in ray chunks of `rays_per_batch` rays (cfg.chunk_samples samples at most, in
+    the memory budget cfg.memory_mb).
 
     A pixel's cfg.spp rays (contiguous, `Cameras.pixel_rays(i, spp)`) are averaged (box
     filter); its sample count is the sum over them."""
@@ -93,9 +109,7 @@ def render_image(field: Any,
     R = height * width * K
     if origins.shape[0] != R or dirs.shape[0] != R:
         raise InputError(f"{origins.shape[0]} rays for a {width}x{height} image at {K} spp")
-    per_ray = {"full": cfg.full_samples,  # occupancy: samples held per live ray and round
-               "occupancy": cfg.occ_chunk}.get(mode, ((cfg.dp_max + 1) // 2) * cfg.n_max)
-    chunk = max(1, cfg.chunk_samples // max(per_ray * K, 1)) * K  # whole pixels per chunk
+    chunk = rays_per_batch(cfg, mode)  # whole pixels per chunk
     rgbs, spps = [], []
     for a in range(0, R, chunk):
         colour, count = render_rays(field, origins[a:a + chunk], dirs[a:a + chunk], cfg, mode,

@@ -29,7 +29,7 @@ from tqdm import tqdm
 from shells import distributed
 from shells.config import RenderConfig
 from shells.metrics import psnr, ssim
-from shells.render.frame import render_image
+from shells.render.frame import rays_per_batch, render_image
 from shells.render.shading import WHITE
 from shells.render.raycast import ShellScene
 
@@ -37,16 +37,30 @@ _HEAT = np.array([[0, 0, 0], [80, 20, 120], [220, 50, 60], [250, 160, 20], [255,
                  np.float64)  # black -> purple -> red -> orange -> pale yellow
 
 
+_BLOCK = 1 << 20  # pixels converted at a time (bounded temporaries for large frames)
+
+
+def _row_blocks(height: int, width: int) -> list[tuple[int, int]]:
+    rows = max(1, _BLOCK // max(width, 1))
+    return [(a, min(height, a + rows)) for a in range(0, height, rows)]
+
+
 def heatmap(spp: torch.Tensor, vmax: float) -> np.ndarray:  # [H, W] -> [H, W, 3] uint8
     """Samples per pixel as colours; 0 is black, vmax the brightest."""
-    x = np.clip(spp.float().numpy() / max(vmax, 1.0), 0.0, 1.0) * (len(_HEAT) - 1)
-    lo = np.floor(x).astype(int).clip(0, len(_HEAT) - 2)
-    w = (x - lo)[..., None]
-    return np.round(_HEAT[lo] * (1 - w) + _HEAT[lo + 1] * w).astype(np.uint8)
+    out = np.empty((*spp.shape, 3), np.uint8)
+    for a, b in _row_blocks(*spp.shape):
+        x = np.clip(spp[a:b].float().numpy() / max(vmax, 1.0), 0.0, 1.0) * (len(_HEAT) - 1)
+        lo = np.floor(x).astype(int).clip(0, len(_HEAT) - 2)
+        w = (x - lo)[..., None]
+        out[a:b] = np.round(_HEAT[lo] * (1 - w) + _HEAT[lo + 1] * w)
+    return out
 
 
 def to_png(img: torch.Tensor) -> np.ndarray:  # [H, W, 3] float in [0, 1] -> uint8
-    return np.round(img.clamp(0, 1).numpy() * 255.0).astype(np.uint8)
+    out = np.empty(img.shape, np.uint8)
+    for a, b in _row_blocks(*img.shape[:2]):
+        out[a:b] = np.round(img[a:b].clamp(0, 1).numpy() * 255.0)
+    return out
 
 
 def render_views(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
@@ -87,7 +101,7 @@ def render_frames(field: Any, cameras: Any, images: torch.Tensor | None, cfg: Re
         if j > 0:  # the first frame of a process compiles the kernels
             warm.append(seconds)
         iio.imwrite(out / f"r_{i:03d}.png", to_png(img))
-        spps[i] = spp
+        spps[i] = spp.to(torch.int16) if int(spp.max()) < 2 ** 15 else spp  # kept for the heatmaps
         views.append({"view": i, "spp_sum": float(spp.double().sum()),
                       "covered": int((spp > 0).sum()), "spp_max": float(spp.max()),
                       "psnr": psnr(img, images[i]) if images is not None else None,
@@ -144,14 +158,27 @@ def ns_eval(psnrs: list[float], ssims: list[float], warm: list[float],
 def _render_view(field: Any, cameras: Any, i: int, cfg: RenderConfig, mode: str,
                  scene: ShellScene | None, aabb: Any, background: tuple[float, float, float],
                  ) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """View i: image [H, W, 3], samples per pixel [H, W], seconds (ray batch -> image)."""
-    o, d = cameras.pixel_rays(i, cfg.spp)
-    dr.sync_thread()
-    t0 = time.perf_counter()
-    img, spp = render_image(field, o, d, cameras.height, cameras.width, cfg, mode, scene, aabb,
-                            background)
-    dr.sync_thread()
-    return img, spp, time.perf_counter() - t0
+    """View i: image [H, W, 3], samples per pixel [H, W], seconds (ray batches -> image).
+
+    A frame larger than one ray batch (`rays_per_batch`, from the memory budget
+    cfg.memory_mb) is rendered in tiles of whole rows, each with its own rays, so memory is
+    bounded by the frame itself (16 bytes a pixel) plus one batch."""
+    H, W, K = cameras.height, cameras.width, cfg.spp
+    rows = max(1, rays_per_batch(cfg, mode) // (W * K))
+    img = torch.empty(H, W, 3, dtype=torch.float32)
+    spp = torch.empty(H, W, dtype=torch.int32)
+    seconds = 0.0
+    for y0 in range(0, H, rows):
+        y1 = min(H, y0 + rows)
+        o, d = cameras.pixel_rays(i, K, (y0, y1))
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        img[y0:y1], spp[y0:y1] = render_image(field, o, d, y1 - y0, W, cfg, mode, scene, aabb,
+                                              background)
+        dr.sync_thread()
+        seconds += time.perf_counter() - t0
+        del o, d
+    return img, spp, seconds
 
 
 def write_video(frames: list[Path], path: Path, fps: float) -> None:
