@@ -15,7 +15,9 @@ which retraces the uninterrupted run exactly); after each piece the checkpoint i
 the test views (full-ray, the run's own sampler), off the clock. The wall time of a point is
 the sum of the pieces' training seconds. Writes OUT/curve.json (every point, rays/s and
 samples/s of each run), OUT/curve.png (matplotlib) and prints a Markdown table. ``--iters-old``
-and ``--iters-new`` set the runs' lengths (default: the presets' own).
+and ``--iters-new`` set the runs' lengths (default: the presets' own); ``--only`` trains one.
+``--replot A/curve.json[:LABEL] B/curve.json[:LABEL] ...`` trains nothing and draws the runs of
+earlier invocations in one plot and table (a run named again gets " (LABEL)" appended).
 """
 
 from __future__ import annotations
@@ -90,19 +92,49 @@ def plot(res: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def table(res: dict) -> None:
+    print("\n| run | steps | train s | rays/s | samples/s | test PSNR |")
+    print("|---|---|---|---|---|---|")
+    for name, r in res.items():
+        print(f"| {name} | {r['iters']} | {r['seconds']:.0f} | {r['rays_per_s']:.0f} | "
+              f"{r['samples_per_s']:.0f} | {r['psnr']:.2f} |")
+
+
+def replot(files: list[str], out: Path) -> int:
+    res, metas = {}, []
+    for spec in files:
+        path, _, label = spec.partition(":")
+        data = json.loads(Path(path).read_text())
+        metas.append(data["meta"])
+        for name, r in data["runs"].items():
+            res[name if name not in res else f"{name} ({label or path})"] = r
+    (out / "curve.json").write_text(json.dumps({"meta": metas, "runs": res}, indent=2) + "\n")
+    m = metas[0]
+    plot(res, out / "curve.png", f"{Path(m['data']).name} 1/{m['downscale']}, stage 1, "
+                                 f"{m['torch_threads']} torch thread(s)")
+    table(res)
+    print(f"curve: {out / 'curve.png'}, {out / 'curve.json'}")
+    return 0
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--data", required=True)
+    p.add_argument("--data", default=None)
     p.add_argument("--downscale", type=int, default=8)
     p.add_argument("--out", required=True)
     p.add_argument("--segments", type=int, default=6, help="test-PSNR points per curve")
     p.add_argument("--iters-old", type=int, default=None)
     p.add_argument("--iters-new", type=int, default=None)
     p.add_argument("--only", choices=["old", "new"], default=None, help="train one of them")
+    p.add_argument("--replot", nargs="+", default=None, metavar="CURVE_JSON[:LABEL]")
     args = p.parse_args()
     device = torch.device("cpu")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.replot:
+        return replot(args.replot, out)
+    if args.data is None:
+        p.error("--data is required unless --replot is given")
     test = load_dataset(args.data, "test", downscale=args.downscale)
     old = toy_config()
     new, preset = preset_config("auto", args.data, args.downscale, device)
@@ -118,11 +150,7 @@ def main() -> int:
     (out / "curve.json").write_text(json.dumps({"meta": meta, "runs": res}, indent=2) + "\n")
     plot(res, out / "curve.png", f"{Path(args.data).name} 1/{args.downscale}, stage 1, "
                                  f"{torch.get_num_threads()} torch threads")
-    print("\n| run | steps | train s | rays/s | samples/s | test PSNR |")
-    print("|---|---|---|---|---|---|")
-    for name, r in res.items():
-        print(f"| {name} | {r['iters']} | {r['seconds']:.0f} | {r['rays_per_s']:.0f} | "
-              f"{r['samples_per_s']:.0f} | {r['psnr']:.2f} |")
+    table(res)
     if len(res) == 2:
         print(f"\nrays/s new / old: {res['new']['rays_per_s'] / res['old']['rays_per_s']:.2f}x")
     print(f"curve: {out / 'curve.png'}, {out / 'curve.json'}")

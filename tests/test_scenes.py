@@ -285,7 +285,7 @@ def test_unknown_scene_and_cli_exit_status(tmp_path, capsys):
 
     assert scene_main(["sphere", "--out", str(tmp_path / "x"), "--res", "4"]) == 2
     assert "--res 4" in capsys.readouterr().err
-    assert set(SCENES) == {"sphere", "fuzzy-sphere", "core-fuzz"}
+    assert set(SCENES) == {"sphere", "fuzzy-sphere", "core-fuzz", "thin-parts"}
 
 
 def test_cli_default_sphere_under_a_minute(tmp_path):
