@@ -94,13 +94,20 @@ def _leave_job(status: int) -> None:
 
 
 def _locked(path: object, command: str):  # -> context manager
-    """The lock of a run or output folder (`shells.run.lock`), held by rank 0 of a torchrun
-    job (its other ranks write nothing)."""
+    """The lock file ``path`` of an output folder (`shells.run.lock`), held by rank 0 of a
+    torchrun job (its other ranks write nothing)."""
     import contextlib
 
     from shells.run import lock
 
     return lock(path, command) if distributed.launched_rank() == 0 else contextlib.nullcontext()
+
+
+def _locked_run(run: str, command: str):  # -> context manager
+    """The lock of the run directory ``run`` (`shells.run.RunDir.lock`), as `_locked`."""
+    from shells.run import RunDir
+
+    return _locked(RunDir(run).lock, command)
 
 
 def _terminate(signum: int, frame: object) -> None:
@@ -212,7 +219,6 @@ def train_parser() -> argparse.ArgumentParser:
 def _train(args: argparse.Namespace) -> int:
     from shells.config import Config, load_config
     from shells.device import torch_device
-    from shells.run import RunDir
     from shells.training import preset_config, train
 
     device = torch_device(args.device)
@@ -226,7 +232,7 @@ def _train(args: argparse.Namespace) -> int:
     base = Config() if args.resume else preset_config(args.preset, args.data, args.downscale,
                                                       device)[0]
     cfg = load_config(args.config, base)
-    with _locked(RunDir(args.out).lock, "shells-train"):
+    with _locked_run(args.out, "shells-train"):
         summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
                         resume=args.resume, iters=args.iters)
     if "test" in summary and distributed.launched_rank() == 0:
@@ -262,9 +268,7 @@ def _extract(args: argparse.Namespace) -> int:
 
     if args.fixed_band is not None and not args.fixed_band > 0:
         raise InputError(f"--fixed-band {args.fixed_band}: must be > 0 world units (e.g. 0.02)")
-    from shells.run import RunDir
-
-    with _locked(RunDir(args.run).lock, "shells-extract"):
+    with _locked_run(args.run, "shells-extract"):
         stats = extract_run(args.run, args.resolution, args.fixed_band, args.config)
     bw = stats.get("band_width", {})
     print(f"outer: {stats['outer_triangles']} triangles, inner: {stats['inner_triangles']} "
@@ -302,9 +306,7 @@ def finetune_parser() -> argparse.ArgumentParser:
 def _finetune(args: argparse.Namespace) -> int:
     from shells.finetune import finetune
 
-    from shells.run import RunDir
-
-    with _locked(RunDir(args.run).lock, "shells-finetune"):
+    with _locked_run(args.run, "shells-finetune"):
         summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
                            device=args.device)
     if distributed.launched_rank() == 0:

@@ -378,8 +378,8 @@ def object_config(extent: float, focal_px: float, distance: float) -> Config:
 
     The toy preset with stage 1's empty-space skipping (``sampler`` "occupancy"; the toy's 32 +
     16 samples per ray, now on the occupied span: 16 + 16 was 1.1 dB worse on lego at equal
-    time), 2048 regulariser points; a hash grid whose finest level resolves half a pixel at the cameras'
-    distance (`finest_resolution`: 256 for lego at 1/8, 512 at 1/4), one level per doubling
+    time), 2048 regulariser points; a hash grid whose finest level resolves half a pixel at the
+    cameras' distance (`finest_resolution`: 256 for lego at 1/8, 512 at 1/4), one level per doubling
     above the toy preset's 8 levels and a table twice as large per doubling from 2^18; 3000
     steps per doubling. Shells on a 256^3 grid, eroded 4 s instead of 1.5 s (``beta_e`` 0.8:
     on lego the inner shell at 1.5 s cut 1 dB off the band render). BENCHMARKS.md, "Issue 13".
@@ -390,8 +390,7 @@ def object_config(extent: float, focal_px: float, distance: float) -> Config:
     cfg.field = dataclasses.replace(cfg.field, max_resolution=res, n_levels=8 + doublings,
                                     log2_hashmap_size=min(21, 18 + doublings))
     cfg.train = dataclasses.replace(cfg.train, sampler="occupancy", iters=3000 * (1 + doublings),
-                                    reg_points=2048,
-                                    checkpoint_every=500, log_every=50)
+                                    reg_points=2048, checkpoint_every=500, log_every=50)
     cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
     cfg.check("object preset")
     return cfg
