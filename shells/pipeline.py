@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from shells.config import override_config
@@ -329,3 +330,142 @@ def demo(out: str | Path, scene: str = "core-fuzz", res: int = 64, views: int = 
           f"({stats['outer_triangles']} / {stats['inner_triangles']} triangles)")
     print(f"images: {run / 'render-band'} (band), {run / 'render-full-stage1'} (full)")
     return [{"renderer": n, **m} for n, m in zip(names, rows)]
+
+
+# ---------------------------------------------------------------------------------------------
+# Cage and animation (paper §5)
+# ---------------------------------------------------------------------------------------------
+
+def cage_run(run_dir: str | Path, margin: float | None = None, resolution: int = 48,
+             edge_length: float = 0.06, epsilon: float = 1e-3,
+             threads: int = 0) -> dict[str, Any]:
+    """Build the tetrahedral cage of RUN/shells (`shells.levelset.cage.build_cage`) and write
+    RUN/cage/{cage.npz, cage.vtu, cage.json}; returns the statistics."""
+    from shells.levelset.cage import build_cage, write_cage
+    from shells.levelset.mesh import load_ply
+    from shells.run import check_shells, run_id, shells_digest
+
+    run = RunDir(run_dir)
+    read_run(run)
+    if not run.outer.is_file():
+        raise InputError(f"{run.outer}: no outer shell; run shells-extract {run.root} first")
+    check_shells(run)
+    outer = load_ply(run.outer)
+    inner = load_ply(run.inner) if run.inner.is_file() else None
+    cage, emb = build_cage(outer, inner, margin, resolution, edge_length, epsilon, threads)
+    extra = {"run_id": run_id(run), "shells_sha1": shells_digest(run)}
+    run.root.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=run.root, prefix=".cage."))
+    try:
+        write_cage(tmp, cage, emb, extra)
+        commit_files(tmp, run.cage, last="cage.npz")  # the file the other commands read
+    except KeyboardInterrupt:
+        raise Interrupted(f"shells-cage interrupted; {run.cage} is as it was before; run it "
+                          "again", status=130) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {**cage.stats, **extra}
+
+
+def cage_poses(motion: str, rest: np.ndarray, tets: np.ndarray, frames: int, fps: float,
+               up: np.ndarray, progress: bool = True
+               ) -> tuple[np.ndarray, dict[str, Any], float]:
+    """Cage positions [frames, n, 3] of a motion name or file, what made them, and the fps."""
+    from shells.deform import MOTION_HELP
+    from shells.deform.fem import SIMULATED
+    from shells.deform.motions import ANALYTIC, AssetFrame, analytic_poses, read_motion_file
+
+    if motion in ANALYTIC:
+        return (analytic_poses(motion, rest, frames, AssetFrame.of(rest, up)),
+                {"kind": "analytic", "name": motion}, fps)
+    if motion in SIMULATED:
+        P, info = SIMULATED[motion](rest, tets, frames, fps, up=up, progress=progress)
+        return P, {"kind": "fem", "name": motion, **info}, fps
+    path = Path(motion)
+    if path.suffix != ".npz" and not path.exists():
+        raise InputError(f"--motion {motion}: expected {MOTION_HELP}")
+    P, file_fps = read_motion_file(path, len(rest))
+    return P, {"kind": "file", "name": str(path)}, file_fps or fps
+
+
+def animate_out(run: RunDir, motion: str, out: str | Path | None) -> Path:
+    return Path(out) if out is not None else run.animate_dir(Path(motion).stem)
+
+
+def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float = 24.0,
+                out: str | Path | None = None, split: str = "test", view: int = 0,
+                width: int | None = None, height: int | None = None, zoom: float = 1.0,
+                stage: str = "latest", progress: bool = True) -> dict[str, Any]:
+    """Render the asset of RUN deformed by a cage motion, seen by camera ``view`` of ``split``
+    (its focal length times ``zoom``): OUT (default RUN/animate-MOTION) gets r_###.png,
+    video.mp4, motion.npz (the cage positions, reusable as --motion FILE) and metrics.json."""
+    from tqdm.auto import tqdm
+
+    from shells.camera_paths import scene_frame
+    from shells.datasets import load_dataset
+    from shells.device import mitsuba_variant
+    from shells.fields.drjit_field import DrJitField
+    from shells.render.deformed import CageAsset
+    from shells.render.views import render_view, to_png, write_video
+    from shells.run import load_cage
+
+    import imageio.v3 as iio
+
+    if frames < 1:
+        raise InputError(f"--frames {frames}: need at least 1")
+    if not fps > 0:
+        raise InputError(f"--fps {fps}: must be > 0 frames per second")
+    if not zoom > 0:
+        raise InputError(f"--zoom {zoom}: must be > 0")
+    run = RunDir(run_dir)
+    meta = check_run(run, "band")
+    cage, emb, outer, inner = load_cage(run)
+    loaded = resolve_stage(run, stage)
+    field, cfg = load_field(run.root, device="cpu", stage=loaded)
+    rc, bg = cfg.render, tuple(cfg.data.background)
+    data = load_dataset(meta["data"], split, downscale=int(meta["downscale"]), background=bg)
+    if not 0 <= view < len(data.cameras):
+        raise InputError(f"--view {view}: the {split} split has views 0..{len(data.cameras) - 1}")
+    cams = data.cameras[view:view + 1].resized(width, height)
+    cams.fx, cams.fy = cams.fx * zoom, cams.fy * zoom
+    up = scene_frame(data.cameras, data.aabb)[1]  # the cameras' mean up (z for Blender sets)
+    P, source, fps = cage_poses(motion, cage.vertices, cage.tets, frames, fps, up, progress)
+    variant = mitsuba_variant(rc.variant)
+    asset = CageAsset(DrJitField(field), cage.vertices, cage.tets, emb, outer[1], inner[1],
+                      variant)
+    out = animate_out(run, motion, out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    total, render, spp_sum = [], [], 0.0
+    try:
+        for k in tqdm(range(len(P)), desc=f"animate {Path(motion).stem}", unit="frame",
+                      disable=not progress):
+            t0 = time.perf_counter()
+            dfield, scene = asset.pose(P[k])
+            img, spp, seconds = render_view(dfield, cams, 0, rc, "band", scene, data.aabb, bg)
+            total.append(time.perf_counter() - t0)
+            render.append(seconds)
+            spp_sum += float(spp.double().mean())
+            iio.imwrite(tmp / f"r_{k:03d}.png", to_png(img))
+        write_video(sorted(tmp.glob("r_*.png")), tmp / "video.mp4", fps)
+        with open(tmp / "motion.npz", "wb") as fh:
+            np.savez(fh, positions=P, fps=fps)
+        warm = total[1:] or total
+        metrics = {
+            "motion": source, "frames": len(P), "fps": fps, "split": split, "view": view,
+            "zoom": zoom, "width": cams.width, "height": cams.height, "stage": loaded,
+            "variant": variant, "cage_vertices": len(cage.vertices),
+            "cage_tetrahedra": len(cage.tets),
+            "ms_per_frame": 1e3 * float(np.median(warm)),
+            "ms_render_per_frame": 1e3 * float(np.median(render[1:] or render)),
+            "ms_first_frame": 1e3 * total[0],
+            "samples_per_pixel": spp_sum / len(P), "out": str(out),
+        }
+        write_json(tmp / "metrics.json", metrics)
+        commit_files(tmp, out, last="metrics.json")
+    except KeyboardInterrupt:
+        raise Interrupted(f"shells-animate interrupted; {out} is as it was before; run it "
+                          "again", status=130) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return metrics

@@ -12,6 +12,8 @@ Layout::
     RUN/finetune_log.jsonl    stage 2 log
     RUN/finetune_summary.json stage 2 finished
     RUN/render-MODE/          images and metrics.json (shells-render)
+    RUN/cage/                 cage.npz, cage.vtu, cage.json: the tetrahedral cage (shells-cage)
+    RUN/animate-MOTION/       frames, video.mp4, motion.npz, metrics.json (shells-animate)
     RUN/.lock                 held by the command writing the run (`lock`): pid, host, command
 
 Versions and identity: run.json holds ``format`` (`FORMAT_VERSION`, the layout of the run
@@ -31,6 +33,7 @@ CLI, which reach the run only through it.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import socket
@@ -89,6 +92,17 @@ class RunDir:
 
     def render_dir(self, mode: str) -> Path:
         return self.root / f"render-{mode}"
+
+    @property
+    def cage(self) -> Path:
+        return self.root / "cage"
+
+    @property
+    def cage_file(self) -> Path:
+        return self.cage / "cage.npz"
+
+    def animate_dir(self, motion: str) -> Path:
+        return self.root / f"animate-{motion}"
 
     @property
     def lock(self) -> Path:
@@ -364,6 +378,35 @@ def check_shells(run: RunDir) -> None:
             raise InputError(f"{run.shells}: the shells were extracted from step "
                              f"{src['stage1_step']} of {run.checkpoint('stage1').name}, which "
                              f"is now at step {step}; {fix}")
+
+
+def shells_digest(run: RunDir) -> str:
+    """A content hash of RUN/shells/outer.ply and inner.ply: what a cage was built from."""
+    h = hashlib.sha1()
+    for p in (run.outer, run.inner):
+        h.update(p.read_bytes() if p.is_file() else b"")
+    return h.hexdigest()
+
+
+def load_cage(run: RunDir) -> tuple[Any, dict[str, Any], tuple[Any, Any], tuple[Any, Any]]:
+    """The cage of RUN/cage (shells-cage) with the shells it embeds: (Cage, embedding, outer
+    (V, F), inner (V, F)). A cage built from other shells than RUN/shells is refused."""
+    from shells.levelset.cage import read_cage
+    from shells.levelset.mesh import load_ply
+
+    check_shells(run)
+    cage, emb = read_cage(run.cage_file)
+    meta = run.cage / "cage.json"
+    built_from = read_json(meta, "cage statistics").get("shells_sha1") if meta.is_file() else None
+    if built_from is not None and built_from != shells_digest(run):
+        raise InputError(f"{run.cage}: the cage was built from other shells than "
+                         f"{run.shells}; run shells-cage {run.root} again")
+    outer = load_ply(run.outer)
+    inner = load_ply(run.inner) if run.inner.is_file() else (outer[0][:0], outer[1][:0])
+    if len(emb["outer_tet"]) != len(outer[0]) or len(emb["inner_tet"]) != len(inner[0]):
+        raise InputError(f"{run.cage_file}: its shell embedding does not match {run.shells}; "
+                         f"run shells-cage {run.root} again")
+    return cage, emb, outer, inner
 
 
 def _step(run: RunDir) -> int | None:

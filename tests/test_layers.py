@@ -8,7 +8,7 @@ subpackage at the same layer):
     0 errors
     1 config, device, cameras, metrics, distributed
     2 datasets, camera_paths, scenes/
-    3 fields/, levelset/, process_data
+    3 fields/, levelset/, deform/, process_data
     4 render/
     5 run            the run directory (builds fields, shells)
     6 loop           the optimisation loop of every training stage
@@ -31,7 +31,7 @@ RANKS = {
     "shells.distributed": 1,
     "shells.datasets": 2, "shells.camera_paths": 2, "scenes": 2,
     "shells.process_data": 3,
-    "shells.fields": 3, "shells.levelset": 3,
+    "shells.fields": 3, "shells.levelset": 3, "shells.deform": 3,
     "shells.render": 4,
     "shells.run": 5,
     "shells.loop": 6,
@@ -40,7 +40,8 @@ RANKS = {
     "shells.cli": 9,
     "bench": 10,
 }
-PACKAGES = ("shells.fields", "shells.levelset", "shells.render", "scenes", "bench")
+PACKAGES = ("shells.fields", "shells.levelset", "shells.deform", "shells.render", "scenes",
+            "bench")
 
 
 def module_name(path: Path) -> str:

@@ -97,7 +97,7 @@ def render_frames(field: Any, cameras: Any, images: torch.Tensor | None, cfg: Re
     mine = list(range(w.rank, len(cameras), w.size))
     views, warm, spps = [], [], {}
     for j, i in enumerate(tqdm(mine, desc=f"render {mode}", disable=not (progress and w.main))):
-        img, spp, seconds = _render_view(field, cameras, i, cfg, mode, scene, aabb, background)
+        img, spp, seconds = render_view(field, cameras, i, cfg, mode, scene, aabb, background)
         if j > 0:  # the first frame of a process compiles the kernels
             warm.append(seconds)
         iio.imwrite(out / f"r_{i:03d}.png", to_png(img))
@@ -108,7 +108,7 @@ def render_frames(field: Any, cameras: Any, images: torch.Tensor | None, cfg: Re
                       "ssim": ssim(img, images[i]) if images is not None else None,
                       "first_s": seconds if j == 0 else None})
     if len(mine) == 1:  # one view: time a second, warm render of it
-        warm.append(_render_view(field, cameras, mine[0], cfg, mode, scene, aabb, background)[2])
+        warm.append(render_view(field, cameras, mine[0], cfg, mode, scene, aabb, background)[2])
     return views, warm, spps
 
 
@@ -155,7 +155,7 @@ def ns_eval(psnrs: list[float], ssims: list[float], warm: list[float],
     return {**out, "results": dict(out)}
 
 
-def _render_view(field: Any, cameras: Any, i: int, cfg: RenderConfig, mode: str,
+def render_view(field: Any, cameras: Any, i: int, cfg: RenderConfig, mode: str,
                  scene: ShellScene | None, aabb: Any, background: tuple[float, float, float],
                  ) -> tuple[torch.Tensor, torch.Tensor, float]:
     """View i: image [H, W, 3], samples per pixel [H, W], seconds (ray batches -> image).
