@@ -36,13 +36,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
-    from shells.camera_paths import scene_frame
     from shells.datasets import load_dataset
     from shells.deform.motions import ANALYTIC, AssetFrame
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
     from shells.render.deformed import CageAsset
     from shells.render.views import render_view
+    from shells.pipeline import capture_up
     from shells.run import RunDir, load_cage, load_field, load_shells, read_run
 
     run = RunDir(args.run)
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     scene = load_shells(run, variant)
     cage, emb, outer, inner = load_cage(run)
     data = load_dataset(meta["data"], "test", downscale=int(meta["downscale"]), background=bg)
-    up = scene_frame(data.cameras, data.aabb)[1]
+    up = capture_up(meta["data"], data)
     pose = ANALYTIC[args.motion](cage.vertices, 0.5, AssetFrame.of(cage.vertices, up))
     asset = CageAsset(dj, cage.vertices, cage.tets, emb, outer[1], inner[1], variant)
     rows = []

@@ -12,7 +12,7 @@ asset whatever its size:
   the base fixed;
 * ``twist``: rotation about the up axis by an angle growing linearly with height, up to
   +-90 degrees at the top;
-* ``wind``: a sway along the side direction growing with the square of the height, with a
+* ``wind``: a sway along the side direction growing with the square of the height (a fifth of the height at the top), with a
   phase that travels across the asset (the paper's plant example), two gusts per animation.
 
 The physically simulated ones (``drop``, ``hang``) are in `shells.deform.fem`; a file of
@@ -101,7 +101,7 @@ def twist(X: np.ndarray, t: float, a: AssetFrame) -> np.ndarray:
 def wind(X: np.ndarray, t: float, a: AssetFrame) -> np.ndarray:
     h = np.clip((X @ a.up - a.base) / a.height, 0.0, None)
     across = (X - a.centre) @ np.cross(a.up, a.side) / a.height
-    sway = 0.12 * a.height * h ** 2 * np.sin(2 * math.pi * (2 * t - 0.5 * across))
+    sway = 0.2 * a.height * h ** 2 * np.sin(2 * math.pi * (2 * t - 0.5 * across))
     return X + sway[:, None] * a.side
 
 
