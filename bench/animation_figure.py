@@ -15,7 +15,6 @@ import sys
 from pathlib import Path
 
 import imageio.v3 as iio
-import numpy as np
 
 
 def main(argv: list[str] | None = None) -> int:

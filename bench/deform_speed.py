@@ -63,11 +63,11 @@ def main(argv: list[str] | None = None) -> int:
         cams.fx, cams.fy = cams.fx * args.zoom, cams.fy * args.zoom
         band, setup, render, spp_b, spp_d = [], [], [], 0.0, 0.0
         for k in range(args.repeats + 1):
-            _, spp, s = render_view(dj, cams, 0, rc, "band", scene, data.aabb, bg)
+            _, spp, s, _ = render_view(dj, cams, 0, rc, "band", scene, data.aabb, bg)
             t0 = time.perf_counter()
             dfield, dscene = asset.pose(pose)
             t1 = time.perf_counter()
-            _, dspp, ds = render_view(dfield, cams, 0, rc, "band", dscene, data.aabb, bg)
+            _, dspp, ds, _ = render_view(dfield, cams, 0, rc, "band", dscene, data.aabb, bg)
             if k == 0:
                 continue  # warm-up: kernels compile
             band.append(s)

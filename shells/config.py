@@ -149,6 +149,19 @@ class RenderConfig:
     occ_step: float = 0.0  # ray-marching step dt (world units); 0 = scene-box diagonal / 1024
     occ_chunk: int = 16  # samples per ray marched, evaluated and composited per round
     ert_eps: float = 1e-4  # early ray termination once transmittance drops below this
+    # image-space adaptive refinement (shells-render --refine L, shells/render/refine.py): a
+    # pixel is interpolated from its parents only if every test passes, else evaluated
+    refine_levels: int = 0  # L: the coarse image takes every 2^L-th pixel; 0 = band mode as is
+    refine_fuzzy_samples: int = 1  # a pixel with an interval of more samples than this is
+    # fuzzy, always evaluated (1: any interval with two samples, the rule of the issue)
+    refine_normal_cos: float = 0.95  # M+ first-hit normals of pixel and parents: dot >= this
+    refine_depth: float = 0.01  # planar depth: |t - mean of the parents' t| <= this * t
+    refine_grazing: float = 0.3  # not grazing: |d . n| >= this at the pixel's first hit
+    refine_colour: float = 0.03  # parents' colours: max - min <= this in every channel
+    refine_opaque: float = 0.99  # parents' opacity >= this (1 on rays that end on M-), or
+    refine_clear: float = 0.0  # ... all parents' opacity <= this (a halo of the band that the
+    # field leaves empty; 0 = only opaque parents, the rule of the issue)
+    refine_field_normal: float = 0.1  # parents: 1 - n_face . n_field <= this (silhouette cue)
 
 
 @dataclass
@@ -334,6 +347,12 @@ _RULES = [_rule(k, *r) for k, r in [
     *[(f"render.{k}", _at_least(0)) for k in ("w_s", "occ_jitter", "occ_step")],
     *[(f"render.{k}", _positive()) for k in ("delta_s", "occ_k")],
     ("render.ert_eps", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),
+    ("render.refine_levels", ((lambda v: 0 <= v <= 6), "must be in 0..6")),
+    ("render.refine_fuzzy_samples", _at_least(1)),
+    *[(f"render.{k}", _fraction()) for k in ("refine_normal_cos", "refine_grazing",
+                                             "refine_opaque", "refine_clear")],
+    *[(f"render.{k}", _at_least(0)) for k in ("refine_depth", "refine_colour",
+                                             "refine_field_normal")],
 ]]
 
 

@@ -456,7 +456,7 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
                       disable=not progress):
             t0 = time.perf_counter()
             dfield, scene = asset.pose(P[k])
-            img, spp, seconds = render_view(dfield, cams, 0, rc, "band", scene, data.aabb, bg)
+            img, spp, seconds, _ = render_view(dfield, cams, 0, rc, "band", scene, data.aabb, bg)
             total.append(time.perf_counter() - t0)
             render.append(seconds)
             spp_sum += float(spp.double().mean())

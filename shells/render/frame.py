@@ -70,24 +70,48 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
         if scene is None:
             raise InputError("band mode needs the shells: pass a ShellScene")
         iv = scene.intervals(o, d, cfg.dp_max)
-        samples = place_packed(iv, cfg)
-    elif mode == "full":
+        return render_intervals(field, o, d, iv, cfg, background)[:2]
+    if mode == "full":
         if aabb is None:
             raise InputError("full mode needs the scene box: pass aabb [2, 3]")
-        samples = place_packed(box_intervals(o, d, aabb), cfg, fixed=cfg.full_samples)
-    elif mode == "occupancy":
+        return render_intervals(field, o, d, box_intervals(o, d, aabb), cfg, background,
+                                fixed=cfg.full_samples)[:2]
+    if mode == "occupancy":
         colour, _, count = render_occupancy(field, o, d, cfg, aabb, background)
         return colour, count
-    else:
-        raise InputError(f"mode '{mode}': expected one of {MODES}")
+    raise InputError(f"mode '{mode}': expected one of {MODES}")
+
+
+def render_intervals(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
+                     iv: Any,  # shells.render.raycast.Intervals of these rays
+                     cfg: RenderConfig,
+                     background: tuple[float, float, float] = WHITE,
+                     fixed: int | None = None,  # samples per interval instead of Procedure 3
+                     extras: bool = False,  # also opacity and the mean field normal
+                     ) -> tuple[Any, ...]:
+    """Samples in the intervals, one field evaluation, compositing: colour mi.Color3f [R] and
+    samples per ray mi.UInt32 [R]; with ``extras`` also the opacity mi.Float [R] (1 on rays
+    that end solid) and the weight-averaged field normal mi.Vector3f [R] (not normalised; 0
+    without samples), which the adaptive refinement (`shells.render.refine`) compares."""
+    samples = place_packed(iv, cfg, fixed=fixed)
     bg = mi.Color3f(*[float(c) for c in background])
+    n = dr.width(d)
     if samples.size == 0:
-        return dr.zeros(mi.Color3f, dr.width(d)) + bg, samples.count
-    alpha, rgb = shade_samples(field, samples, o, d)
+        out = (dr.zeros(mi.Color3f, n) + bg, samples.count)
+        return out + ((dr.zeros(mi.Float, n), dr.zeros(mi.Vector3f, n)) if extras else ())
+    shaded = shade_samples(field, samples, o, d, normals=extras)
+    alpha, rgb = shaded[:2]
     end = end_colour(rgb, samples, bg)  # the solid-end rule (background in full mode)
-    colour, _ = composite_packed(alpha, rgb, samples.start, samples.count, end)
-    dr.eval(colour, samples.count)
-    return colour, samples.count
+    colour, opacity = composite_packed(alpha, rgb, samples.start, samples.count, end)
+    if not extras:
+        dr.eval(colour, samples.count)
+        return colour, samples.count
+    normal, _ = composite_packed(alpha, shaded[2], samples.start, samples.count,
+                                 mi.Color3f(0.0))
+    if samples.solid is not None:
+        opacity = dr.select(samples.solid, 1.0, opacity)
+    dr.eval(colour, samples.count, opacity, normal)
+    return colour, samples.count, opacity, mi.Vector3f(normal)
 
 
 def render_image(field: Any,

@@ -166,6 +166,18 @@ class ShellScene:
             params[f"{mesh.id()}.vertex_positions"] = mi.Float(V.ravel())
         params.update()
 
+    def first_hit(self, origins: Any, dirs: Any) -> tuple[Any, Any]:
+        """Distance (inf: no hit) and unit geometric normal of each ray's first hit on either
+        shell: mi.Float [R], mi.Vector3f [R]."""
+        o = to_point3f(origins, mi.Point3f)
+        d = to_point3f(dirs, mi.Vector3f)
+        si = self.scene.ray_intersect(mi.Ray3f(o, d), mi.RayFlags.Minimal, False)
+        valid = si.is_valid()
+        t = dr.select(valid, si.t, dr.inf)
+        n = dr.select(valid, si.n, 0.0)
+        dr.eval(t, n)
+        return t, n
+
     def intervals(self, origins: Any,  # [R, 3] torch/numpy, or mi.Point3f
                   dirs: Any,  # [R, 3] unit directions, torch/numpy, or mi.Vector3f
                   dp_max: int,  # at most this many M+ hits peeled per ray

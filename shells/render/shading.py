@@ -39,16 +39,22 @@ def composite_packed(alpha: Any,  # mi.Float [M] packed per ray, front to back
     return acc + trans * background, 1.0 - trans
 
 
-def shade_samples(field: Any, samples: PackedSamples, o: Any, d: Any) -> tuple[Any, Any]:
-    """One batched field evaluation at the packed samples: alpha [M], rgb [M]."""
+def shade_samples(field: Any, samples: PackedSamples, o: Any, d: Any,
+                  normals: bool = False) -> tuple[Any, ...]:
+    """One batched field evaluation at the packed samples: alpha [M], rgb [M] (and the
+    field's normal [M] as a third output when ``normals``)."""
     ro = dr.gather(mi.Point3f, o, samples.ray)
     rd = dr.gather(mi.Vector3f, d, samples.ray)
     x = dr.fma(rd, samples.t, ro)
     f = field.eval(x, rd)
     alpha = neus_alpha(f.sdf, f.s, dr.dot(rd, f.normal), samples.delta)
     rgb = mi.Color3f(f.rgb)
-    # One kernel for all four outputs: compositing gathers from them, and a gather source that
+    # One kernel for all outputs: compositing gathers from them, and a gather source that
     # is still symbolic gets evaluated on its own (the field would run once per output).
+    if normals:
+        n = mi.Color3f(f.normal)
+        dr.eval(alpha, rgb, n)
+        return alpha, rgb, n
     dr.eval(alpha, rgb)
     return alpha, rgb
 

@@ -30,6 +30,7 @@ from shells import distributed
 from shells.config import RenderConfig
 from shells.metrics import psnr, ssim
 from shells.render.frame import rays_per_batch, render_image
+from shells.render.refine import render_refined, tile_rows
 from shells.render.shading import WHITE
 from shells.render.raycast import ShellScene
 
@@ -97,13 +98,15 @@ def render_frames(field: Any, cameras: Any, images: torch.Tensor | None, cfg: Re
     mine = list(range(w.rank, len(cameras), w.size))
     views, warm, spps = [], [], {}
     for j, i in enumerate(tqdm(mine, desc=f"render {mode}", disable=not (progress and w.main))):
-        img, spp, seconds = render_view(field, cameras, i, cfg, mode, scene, aabb, background)
+        img, spp, seconds, counts = render_view(field, cameras, i, cfg, mode, scene, aabb,
+                                                background)
         if j > 0:  # the first frame of a process compiles the kernels
             warm.append(seconds)
         iio.imwrite(out / f"r_{i:03d}.png", to_png(img))
         spps[i] = spp.to(torch.int16) if int(spp.max()) < 2 ** 15 else spp  # kept for the heatmaps
         views.append({"view": i, "spp_sum": float(spp.double().sum()),
-                      "covered": int((spp > 0).sum()), "spp_max": float(spp.max()),
+                      "covered": counts["covered"], "evaluated": counts["evaluated"],
+                      "spp_max": float(spp.max()),
                       "psnr": psnr(img, images[i]) if images is not None else None,
                       "ssim": ssim(img, images[i]) if images is not None else None,
                       "first_s": seconds if j == 0 else None})
@@ -132,6 +135,8 @@ def summarise(views: list[dict[str, Any]], warm: list[float], spps: dict[int, to
         "samples_per_covered_pixel": (sum(v["spp_sum"] for v in views) / covered
                                       if covered else 0.0),
         "covered_fraction": covered / (n * H * W),
+        "evaluated_fraction_of_covered": (sum(v.get("evaluated", v["covered"]) for v in views)
+                                          / covered if covered else 0.0),
         "ms_per_frame": 1e3 * statistics.median(warm),
         "ms_first_frame": 1e3 * max(firsts),
         "width": W, "height": H, "n_views": n, "mode": mode, "processes": processes,
@@ -156,29 +161,40 @@ def ns_eval(psnrs: list[float], ssims: list[float], warm: list[float],
 
 
 def render_view(field: Any, cameras: Any, i: int, cfg: RenderConfig, mode: str,
-                 scene: ShellScene | None, aabb: Any, background: tuple[float, float, float],
-                 ) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """View i: image [H, W, 3], samples per pixel [H, W], seconds (ray batches -> image).
+                scene: ShellScene | None, aabb: Any, background: tuple[float, float, float],
+                ) -> tuple[torch.Tensor, torch.Tensor, float, dict[str, int]]:
+    """View i: image [H, W, 3], samples per pixel [H, W], seconds (ray batches -> image), and
+    pixel counts {"covered": rays with shell intervals (band) or samples, "evaluated": pixels
+    whose field was evaluated (fewer than covered with cfg.refine_levels > 0)}.
 
     A frame larger than one ray batch (`rays_per_batch`, from the memory budget
     cfg.memory_mb) is rendered in tiles of whole rows, each with its own rays, so memory is
-    bounded by the frame itself (16 bytes a pixel) plus one batch."""
+    bounded by the frame itself (16 bytes a pixel) plus one batch. In band mode with
+    cfg.refine_levels > 0 the tiles are those of `shells.render.refine.tile_rows`."""
     H, W, K = cameras.height, cameras.width, cfg.spp
-    rows = max(1, rays_per_batch(cfg, mode) // (W * K))
+    refine = mode == "band" and cfg.refine_levels > 0
+    rows = tile_rows(cfg, W) if refine else max(1, rays_per_batch(cfg, mode) // (W * K))
     img = torch.empty(H, W, 3, dtype=torch.float32)
     spp = torch.empty(H, W, dtype=torch.int32)
-    seconds = 0.0
+    seconds, counts = 0.0, {"covered": 0, "evaluated": 0}
     for y0 in range(0, H, rows):
         y1 = min(H, y0 + rows)
         o, d = cameras.pixel_rays(i, K, (y0, y1))
         dr.sync_thread()
         t0 = time.perf_counter()
-        img[y0:y1], spp[y0:y1] = render_image(field, o, d, y1 - y0, W, cfg, mode, scene, aabb,
-                                              background)
+        if refine:
+            img[y0:y1], spp[y0:y1], evaluated, covered = render_refined(
+                field, o, d, y1 - y0, W, cfg, scene, background)
+        else:
+            img[y0:y1], spp[y0:y1] = render_image(field, o, d, y1 - y0, W, cfg, mode, scene,
+                                                  aabb, background)
+            evaluated = covered = spp[y0:y1] > 0
         dr.sync_thread()
         seconds += time.perf_counter() - t0
+        counts["covered"] += int(covered.sum())
+        counts["evaluated"] += int(evaluated.sum())
         del o, d
-    return img, spp, seconds
+    return img, spp, seconds, counts
 
 
 def write_video(frames: list[Path], path: Path, fps: float) -> None:
