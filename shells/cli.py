@@ -171,13 +171,22 @@ def process_data_parser() -> argparse.ArgumentParser:
                    help="COLMAP camera model shared by the photos (default SIMPLE_RADIAL: f, "
                         "cx, cy, k1, COLMAP's default; OPENCV: fx, fy, cx, cy, k1, k2, p1, p2 "
                         "for strongly distorted lenses)")
+    p.add_argument("--max-error", type=float, default=2.0, metavar="PX",
+                   help="reprojection error in pixels up to which a match counts as an inlier "
+                        "(two-view RANSAC, triangulation, bundle-adjustment filtering; 3x it "
+                        "for registering a view). Default 2: sharp photos; COLMAP's own "
+                        "default, 4, suits blurred or badly distorted ones")
+    p.add_argument("--no-guided-matching", dest="guided_matching", action="store_false",
+                   help="skip the second, guided matching pass along each verified pair's "
+                        "epipolar geometry (matching 1.5-3x faster; fewer views may register)")
     return p
 
 
 def _process_data(args: argparse.Namespace) -> int:
     from shells.process_data import process_data
 
-    s = process_data(args.images, args.out, args.downscale, args.matching, args.camera_model)
+    s = process_data(args.images, args.out, args.downscale, args.matching, args.camera_model,
+                     args.max_error, args.guided_matching)
     intr = s["intrinsics"]
     print(f"registered {s['registered']} of {s['photos']} photos ({s['camera_model']}, "
           f"fl_x {intr['fl_x']:.1f}, {intr['w']}x{intr['h']}) in {s['seconds']:.0f} s; "
