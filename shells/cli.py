@@ -361,6 +361,12 @@ def render_parser() -> argparse.ArgumentParser:
                         "K + N, ...; the last shard to finish merges all into OUT")
     p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest",
                    help="which checkpoint: stage 2 when present (latest, default), or explicit")
+    p.add_argument("--refine", type=int, default=None, metavar="L",
+                   help="image-space adaptive refinement (band mode, spp 1): evaluate every "
+                        "2^L-th pixel, then interpolate a pixel from its parents where the "
+                        "shell cast and the parents agree, evaluate it otherwise; 0 = plain "
+                        "band mode (default: the run's render.refine_levels, 0; thresholds: "
+                        "render.refine_*)")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="JSON file with a 'render' section overriding the run's settings "
                         "(see shells/config.py), e.g. {\"render\": {\"delta_s\": 0.01}}")
@@ -391,7 +397,7 @@ def _render(args: argparse.Namespace) -> int:
         m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
                        height=args.height, out=args.out, stage=args.stage, config=args.config,
                        spp=args.spp, path=args.path, frames=args.frames, fps=args.fps,
-                       shard=shard)
+                       shard=shard, refine=args.refine)
     if distributed.launched_rank() != 0:
         return 0
     if m.get("complete") is False:
@@ -399,9 +405,12 @@ def _render(args: argparse.Namespace) -> int:
               f"{m['out']} is written when all shards are done")
         return 0
     fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
+    refined = m["render_config"].get("refine_levels", 0)
+    extra = (f", refine {refined}: {100 * m['evaluated_fraction_of_covered']:.0f} % of covered "
+             "pixels evaluated" if refined else "")
     print(f"{m['mode']}: PSNR {fmt(m.get('psnr'), '.2f')} dB, SSIM {fmt(m.get('ssim'), '.4f')}, "
           f"{m['samples_per_pixel']:.2f} samples/pixel, {m['ms_per_frame']:.1f} ms/frame "
-          f"({m['width']}x{m['height']}, {m['variant']}) -> {m['out']}")
+          f"({m['width']}x{m['height']}, {m['variant']}{extra}) -> {m['out']}")
     return 0
 
 

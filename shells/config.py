@@ -162,6 +162,9 @@ class RenderConfig:
     refine_clear: float = 0.0  # ... all parents' opacity <= this (a halo of the band that the
     # field leaves empty; 0 = only opaque parents, the rule of the issue)
     refine_field_normal: float = 0.1  # parents: 1 - n_face . n_field <= this (silhouette cue)
+    refine_min_share: float = 0.25  # below this share of covered pixels that could be
+    # interpolated at all (not fuzzy, not grazing) the tile is evaluated whole: same image,
+    # without the refinement's bookkeeping
 
 
 @dataclass
@@ -350,7 +353,8 @@ _RULES = [_rule(k, *r) for k, r in [
     ("render.refine_levels", ((lambda v: 0 <= v <= 6), "must be in 0..6")),
     ("render.refine_fuzzy_samples", _at_least(1)),
     *[(f"render.{k}", _fraction()) for k in ("refine_normal_cos", "refine_grazing",
-                                             "refine_opaque", "refine_clear")],
+                                             "refine_opaque", "refine_clear",
+                                             "refine_min_share")],
     *[(f"render.{k}", _at_least(0)) for k in ("refine_depth", "refine_colour",
                                              "refine_field_normal")],
 ]]

@@ -123,7 +123,8 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                stage: str = "latest", config: str | Path | None = None,
                spp: int | None = None, path: str | None = None, frames: int = 120,
                fps: float | None = None,
-               shard: tuple[int, int] | None = None) -> dict[str, Any]:
+               shard: tuple[int, int] | None = None,
+               refine: int | None = None) -> dict[str, Any]:
     """Render every view of ``split`` (or of a camera ``path``) and write images +
     metrics.json; returns the metrics.
 
@@ -131,7 +132,8 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     ``config``: a JSON file with a ``render`` section overriding the run's render settings;
     ``spp``: rays per pixel (overrides both); ``path``: orbit | spiral | interpolate | a
     nerfstudio camera_path.json (`shells.camera_paths`), ``frames`` long, written as PNGs and
-    video.mp4 at ``fps`` (default: the file's, else 30). Under torchrun, rank r of N renders
+    video.mp4 at ``fps`` (default: the file's, else 30); ``refine`` L: image-space adaptive
+    refinement in band mode (`shells.render.refine`, render.refine_levels). Under torchrun, rank r of N renders
     views r, r + N, ... and rank 0 writes metrics.json and the video. ``shard`` (K, N): the
     same share for an independent process (no torchrun); see `_render_shard`.
     """
@@ -148,6 +150,12 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     override_config(cfg, config, ("render",), "shells-render")
     if spp is not None:
         cfg.update({"render": {"spp": spp}}, "--spp")
+    if refine is not None:
+        cfg.update({"render": {"refine_levels": refine}}, "--refine")
+    if cfg.render.refine_levels > 0 and (mode != "band" or cfg.render.spp != 1):
+        raise InputError(f"--refine {cfg.render.refine_levels}: refinement is for band mode "
+                         f"with one ray per pixel (here --mode {mode}, spp {cfg.render.spp}); "
+                         "use --mode band --spp 1, or --refine 0")
     if fps is not None and not fps > 0:
         raise InputError(f"--fps {fps}: must be > 0 frames per second")
     rc, bg = cfg.render, tuple(cfg.data.background)

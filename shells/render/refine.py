@@ -34,6 +34,10 @@ sample is taken, so a pixel whose neighbourhood is simple can be interpolated in
    ray without intervals has no samples: it is background, as in the band render, at every
    level, and is neither evaluated nor interpolated.
 
+When fewer than ``refine_min_share`` of the covered pixels could be interpolated at all (not
+fuzzy, not grazing: cast features only), the tile is evaluated whole, which is the band
+render without the refinement's bookkeeping.
+
 Evaluated pixels are bit-identical to the band render (same intervals, same code). A frame
 is refined in tiles of whole rows (a multiple of S) when it is larger than the memory budget
 allows; pixels whose parents lie in the next tile are evaluated.
@@ -120,6 +124,11 @@ def render_refined(field: Any,
                                 indexing="ij")
         return xs.reshape(-1), ys.reshape(-1)
 
+    hopeful = covered & cast["single"] & (cast["cos"] >= cfg.refine_grazing)
+    if int(hopeful.sum()) < cfg.refine_min_share * int(covered.sum()):
+        evaluate(torch.nonzero(covered).squeeze(1))  # little to gain: the band render as is
+        return (colour.reshape(height, width, 3), spp.reshape(height, width),
+                evaluated.reshape(height, width), covered.reshape(height, width))
     S = 1 << L
     xs, ys = grid(S)
     idx = ys * width + xs
