@@ -424,7 +424,7 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
     video.mp4, motion.npz (the cage positions, reusable as --motion FILE) and metrics.json."""
     from tqdm.auto import tqdm
 
-    from shells.datasets import load_dataset
+    from shells.datasets import read_frames
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
     from shells.render.deformed import CageAsset
@@ -445,7 +445,8 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
     loaded = resolve_stage(run, stage)
     field, cfg = load_field(run.root, device="cpu", stage=loaded)
     rc, bg = cfg.render, tuple(cfg.data.background)
-    data = load_dataset(meta["data"], split, downscale=int(meta["downscale"]), background=bg)
+    data = read_frames(meta["data"], split)  # the cameras only: no image is decoded
+    data.cameras = data.cameras.downscaled(int(meta["downscale"]))
     if not 0 <= view < len(data.cameras):
         raise InputError(f"--view {view}: the {split} split has views 0..{len(data.cameras) - 1}")
     cams = data.cameras[view:view + 1].resized(width, height)
