@@ -144,6 +144,14 @@ def test_locator_agrees_with_brute_force(capsule):
                                atol=1e-5)
 
 
+def test_building_a_cage_writes_nothing_into_the_working_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # fTetWild writes a debug file into its working folder
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    cage, _ = build_cage((sphere.vertices, sphere.faces), resolution=12, edge_length=0.2,
+                         threads=1)
+    assert len(cage.tets) > 0 and list(tmp_path.iterdir()) == []
+
+
 def test_bad_cage_input_is_refused(capsule):
     _, outer, inner, _, _ = capsule
     with pytest.raises(InputError, match="outer shell is empty"):

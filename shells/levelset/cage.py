@@ -34,6 +34,8 @@ pose, rebuilt each frame), so there is one implementation of "which tetrahedron 
 from __future__ import annotations
 
 import json
+import os
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -292,10 +294,16 @@ def build_cage(outer: tuple[np.ndarray, np.ndarray],  # M+ (V, F)
         raise InputError(f"--margin {margin}: must be > 0 world units")
     surface, h = dilated_surface(Vo, Fo, margin, resolution)
     t1 = time.perf_counter()
-    Vt, Tt = pytetwild.tetrahedralize(np.asarray(surface.vertices, np.float64),
-                                      np.asarray(surface.faces, np.int32),
-                                      edge_length_fac=edge_length, epsilon=epsilon,
-                                      num_threads=threads, quiet=True)
+    here = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="shells-tetwild-") as scratch:
+        os.chdir(scratch)  # fTetWild writes a debug file (__tracked_surface.stl) into the cwd
+        try:
+            Vt, Tt = pytetwild.tetrahedralize(np.asarray(surface.vertices, np.float64),
+                                              np.asarray(surface.faces, np.int32),
+                                              edge_length_fac=edge_length, epsilon=epsilon,
+                                              num_threads=threads, quiet=True)
+        finally:
+            os.chdir(here)
     t2 = time.perf_counter()
     Vt = np.asarray(Vt, np.float64)
     Tt = orient(Vt, np.asarray(Tt, np.int64))
