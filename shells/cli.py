@@ -309,6 +309,8 @@ def finetune_parser() -> argparse.ArgumentParser:
                    help="JSON file with 'finetune' and/or 'render' sections overriding the "
                         "run's settings (see shells/config.py), "
                         "e.g. {\"finetune\": {\"iters\": 1000}}")
+    p.add_argument("--shells", choices=["fine", "lod"], default="fine",
+                   help="which shells: RUN/shells (fine, default) or RUN/shells/lod (shells-lod)")
     return p
 
 
@@ -317,7 +319,7 @@ def _finetune(args: argparse.Namespace) -> int:
 
     with _locked_run(args.run, "shells-finetune"):
         summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
-                           device=args.device)
+                           device=args.device, shells=args.shells)
     if distributed.launched_rank() == 0:
         print(f"stage 2 done ({summary['step']} steps); checkpoint {args.run}/finetune.pt")
     return 0
@@ -370,6 +372,8 @@ def render_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, metavar="FILE",
                    help="JSON file with a 'render' section overriding the run's settings "
                         "(see shells/config.py), e.g. {\"render\": {\"delta_s\": 0.01}}")
+    p.add_argument("--shells", choices=["fine", "lod"], default="fine",
+                   help="which shells: RUN/shells (fine, default) or RUN/shells/lod (shells-lod)")
     return p
 
 
@@ -397,7 +401,7 @@ def _render(args: argparse.Namespace) -> int:
         m = render_run(args.run, split=args.split, mode=args.mode, width=args.width,
                        height=args.height, out=args.out, stage=args.stage, config=args.config,
                        spp=args.spp, path=args.path, frames=args.frames, fps=args.fps,
-                       shard=shard, refine=args.refine)
+                       shard=shard, refine=args.refine, shells=args.shells)
     if distributed.launched_rank() != 0:
         return 0
     if m.get("complete") is False:
@@ -565,3 +569,49 @@ def _animate(args: argparse.Namespace) -> int:
 
 def animate_main(argv: Sequence[str] | None = None) -> int:
     return _run(_animate, animate_parser(), argv, ("shells.pipeline", "shells.render.deformed"))
+
+
+# --------------------------------------------------------------------------------------------
+# shells-lod (issue 18)
+# --------------------------------------------------------------------------------------------
+
+def lod_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="shells-lod",
+        description="Simplified shells that contain the fine ones (coarse M+ around M+, coarse "
+                    "M- inside M-, so the band only grows): RUN/shells/lod/{outer,inner}.ply, "
+                    "stats.json. Render or fine-tune with them by --shells lod.")
+    p.add_argument("run", help="run directory with shells (shells-extract)")
+    p.add_argument("--ratio", type=float, default=10.0,
+                   help="fine triangles per coarse triangle, each shell (default 10)")
+    p.add_argument("--kappa", type=float, default=None,
+                   help="allowed looseness as a share of the local band width (default 0.1; "
+                        "clamped to 0.25..2 grid cells)")
+    p.add_argument("--parity-rays", type=int, default=100_000,
+                   help="random rays of the enter/exit parity check (default 100000)")
+    return p
+
+
+def _lod(args: argparse.Namespace) -> int:
+    from shells.pipeline import lod_run
+
+    if not args.ratio > 1:
+        raise InputError(f"--ratio {args.ratio}: must be > 1 (e.g. 10)")
+    if args.kappa is not None and not args.kappa > 0:
+        raise InputError(f"--kappa {args.kappa}: must be > 0 (e.g. 0.1)")
+    with _locked_run(args.run, "shells-lod"):
+        st = lod_run(args.run, args.ratio, args.parity_rays, args.kappa)
+    for name in ("outer", "inner"):
+        s = st[name]
+        if "check" not in s:
+            print(f"{name}: none")
+            continue
+        print(f"{name}: {s['fine_triangles']} -> {s['triangles']} triangles "
+              f"({s['reduction']:.1f}x), contained {s['check'].get('contained', True)}, "
+              f"parity {s.get('parity', {}).get('parity_fraction', 1.0):.5f}")
+    print(f"{st['seconds']:.1f} s -> {args.run}/shells/lod/")
+    return 0
+
+
+def lod_main(argv: Sequence[str] | None = None) -> int:
+    return _run(_lod, lod_parser(), argv, ("shells.pipeline", "shells.levelset.lod"))

@@ -45,12 +45,14 @@ def stage2_step(field: ShellField, scene: ShellScene, data: Dataset, pixels: tor
 def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False,
              progress: bool = True, stop_at: int | None = None,
              config: str | Path | None = None,
-             device: str | torch.device | None = None) -> dict[str, Any]:
+             device: str | torch.device | None = None,
+             shells: str = "fine") -> dict[str, Any]:
     """Stage-2 fine-tuning of a run that has a stage-1 checkpoint and shells.
 
     ``config``: a JSON file with ``finetune`` / ``render`` sections overriding the run's; the
     result is stored with the stage-2 checkpoint (and used by renders of stage 2).
-    ``device``: torch device (default: CUDA when available).
+    ``device``: torch device (default: CUDA when available); ``shells``: 'fine' (RUN/shells) or
+    'lod' (RUN/shells/lod, shells-lod), recorded in the stage-2 log's summary.
     """
     run = RunDir(run_dir)
     meta = read_run(run)
@@ -73,7 +75,7 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
         cfg.update({"finetune": {"iters": iters}}, "--iters")
     w = join(cfg, "finetune", ckpt is None, dev)
     fc, rc = cfg.finetune, cfg.render
-    scene = load_shells(run, mitsuba_variant(rc.variant, dev))
+    scene = load_shells(run, mitsuba_variant(rc.variant, dev), shells)
     data = load_dataset(meta["data"], "train", downscale=int(meta["downscale"]),
                         background=cfg.data.background)
     opt = make_optimizer(field, fc.lr, fc.lr_mlp)
@@ -84,6 +86,7 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
                                                gen),
                        run.checkpoint("stage2"), run.log("stage2"), dev, resume=ckpt,
                        stop_at=stop_at, progress=progress)
+    summary["shells"] = shells
     if summary["finished"] and w.main:  # the summary marks a finished stage 2
         write_json(run.summary("stage2"), summary)
     return summary

@@ -124,7 +124,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                spp: int | None = None, path: str | None = None, frames: int = 120,
                fps: float | None = None,
                shard: tuple[int, int] | None = None,
-               refine: int | None = None) -> dict[str, Any]:
+               refine: int | None = None, shells: str = "fine") -> dict[str, Any]:
     """Render every view of ``split`` (or of a camera ``path``) and write images +
     metrics.json; returns the metrics.
 
@@ -133,9 +133,10 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     ``spp``: rays per pixel (overrides both); ``path``: orbit | spiral | interpolate | a
     nerfstudio camera_path.json (`shells.camera_paths`), ``frames`` long, written as PNGs and
     video.mp4 at ``fps`` (default: the file's, else 30); ``refine`` L: image-space adaptive
-    refinement in band mode (`shells.render.refine`, render.refine_levels). Under torchrun, rank r of N renders
-    views r, r + N, ... and rank 0 writes metrics.json and the video. ``shard`` (K, N): the
-    same share for an independent process (no torchrun); see `_render_shard`.
+    refinement in band mode (`shells.render.refine`, render.refine_levels). Under torchrun,
+    rank r of N renders views r, r + N, ... and rank 0 writes metrics.json and the video. ``shard`` (K, N): the
+    same share for an independent process (no torchrun); see `_render_shard`. ``shells``:
+    'fine' (RUN/shells) or 'lod' (RUN/shells/lod, shells-lod) for band mode.
     """
     from shells import distributed
     from shells.camera_paths import camera_path
@@ -160,7 +161,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
         raise InputError(f"--fps {fps}: must be > 0 frames per second")
     rc, bg = cfg.render, tuple(cfg.data.background)
     variant = mitsuba_variant(rc.variant)
-    scene = load_shells(run, variant) if mode == "band" else None
+    scene = load_shells(run, variant, shells) if mode == "band" else None
     data = load_dataset(meta["data"], "train" if path else split,
                         downscale=int(meta["downscale"]), background=bg)
     if path:
@@ -175,7 +176,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     out = render_out(run, mode, path, out)
     extra = {
         "split": None if path else split, "path": path, "variant": variant,
-        "stage": loaded, "out": str(out),
+        "stage": loaded, "out": str(out), "shells": shells if mode == "band" else None,
         "device": "cuda" if variant.startswith("cuda") else "cpu",
         "background": list(bg), "data": str(meta["data"]),
         "downscale": int(meta["downscale"]),
@@ -492,3 +493,55 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return metrics
+
+
+# ---------------------------------------------------------------------------------------------
+# Shell levels of detail (issue 18)
+# ---------------------------------------------------------------------------------------------
+
+def lod_run(run_dir: str | Path, ratio: float = 10.0, parity_rays: int = 100_000,
+            kappa: float | None = None) -> dict[str, Any]:
+    """Coarse shells of RUN/shells that contain them (`shells.levelset.lod.make_lod`), written
+    to RUN/shells/lod/{outer.ply, inner.ply, stats.json} all or nothing; returns the stats
+    (triangles, file sizes, offsets used, the containment checks, ray parity)."""
+    from shells.errors import read_json
+    from shells.levelset.lod import LodParams, make_lod
+    from shells.levelset.mesh import load_ply, write_ply
+    from shells.run import check_shells, shells_digest
+
+    import trimesh
+
+    run = RunDir(run_dir)
+    read_run(run)
+    if not run.outer.is_file():
+        raise InputError(f"{run.outer}: no outer shell; run shells-extract {run.root} first")
+    check_shells(run)
+    fine = read_json(run.shells / "stats.json", "shell statistics; re-run shells-extract")
+    if "aabb" not in fine or "spacing" not in fine:
+        raise InputError(f"{run.shells / 'stats.json'}: no grid (aabb, spacing); re-run "
+                         "shells-extract")
+    box, h = np.asarray(fine["aabb"], np.float64), float(min(fine["spacing"]))
+    p = LodParams() if kappa is None else LodParams(kappa=kappa)
+    outer = load_ply(run.outer)
+    inner = load_ply(run.inner) if run.inner.is_file() else None
+    t0 = time.perf_counter()
+    co, ci, stats = make_lod(outer, inner, ratio, box[0], h, p, parity_rays, box)
+    stats["seconds"] = time.perf_counter() - t0
+    stats["shells_sha1"] = shells_digest(run)
+    stats["source"] = fine.get("source")
+    tmp = Path(tempfile.mkdtemp(dir=run.shells, prefix=".lod."))
+    try:
+        write_ply(tmp / "outer.ply", trimesh.Trimesh(*co, process=False))
+        write_ply(tmp / "inner.ply", trimesh.Trimesh(*ci, process=False))
+        stats["file_bytes"] = {
+            "outer": (tmp / "outer.ply").stat().st_size, "inner": (tmp / "inner.ply").stat().st_size,
+            "fine_outer": run.outer.stat().st_size,
+            "fine_inner": run.inner.stat().st_size if run.inner.is_file() else 0}
+        write_json(tmp / "stats.json", stats)
+        commit_files(tmp, run.lod, last="stats.json")
+    except KeyboardInterrupt:
+        raise Interrupted(f"shells-lod interrupted; {run.lod} is as it was before; run it "
+                          "again", status=130) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return stats

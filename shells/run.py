@@ -8,6 +8,8 @@ Layout::
     RUN/train_log.jsonl       stage 1: one JSON record per log step
     RUN/train_summary.json    stage 1 finished: steps, seconds, last record, test PSNR
     RUN/shells/               outer.ply, inner.ply, stats.json, slice.png (shells-extract)
+    RUN/shells/lod/           outer.ply, inner.ply, stats.json: coarse shells that contain the
+                              fine ones (shells-lod); `load_shells(..., which="lod")`
     RUN/finetune.pt           stage-2 checkpoint (shells-finetune), same content as stage 1's
     RUN/finetune_log.jsonl    stage 2 log
     RUN/finetune_summary.json stage 2 finished
@@ -50,6 +52,7 @@ from shells.errors import InputError, atomic_write, read_json, write_json
 from shells.fields.network import ShellField
 
 STAGES = ("stage1", "stage2")
+SHELL_KINDS = ("fine", "lod")  # RUN/shells and RUN/shells/lod
 FORMAT_VERSION = 1  # the run directory's layout; a missing "format" key means 1
 
 
@@ -79,6 +82,17 @@ class RunDir:
     @property
     def inner(self) -> Path:
         return self.shells / "inner.ply"
+
+    @property
+    def lod(self) -> Path:
+        return self.shells / "lod"
+
+    def shell_files(self, which: str = "fine") -> tuple[Path, Path]:
+        """(outer.ply, inner.ply) of the fine shells or of their LOD (RUN/shells/lod)."""
+        if which not in SHELL_KINDS:
+            raise InputError(f"--shells {which}: expected one of {SHELL_KINDS}")
+        base = self.shells if which == "fine" else self.lod
+        return base / "outer.ply", base / "inner.ply"
 
     def checkpoint(self, stage: str = "stage1") -> Path:
         return self.root / {"stage1": "checkpoint.pt", "stage2": "finetune.pt"}[stage]
@@ -339,20 +353,36 @@ def load_field(run_dir: str | Path, device: str | torch.device = "cpu",
 # Shells
 # ---------------------------------------------------------------------------------------------
 
-def load_shells(run: RunDir, variant: str | None = None) -> Any:
-    """A `shells.render.raycast.ShellScene` from RUN/shells (Mitsuba ``variant``); a missing or
-    empty inner.ply means no interior termination."""
+def load_shells(run: RunDir, variant: str | None = None, which: str = "fine") -> Any:
+    """A `shells.render.raycast.ShellScene` from RUN/shells (``which`` 'fine') or RUN/shells/lod
+    ('lod', shells-lod) (Mitsuba ``variant``); a missing or empty inner.ply means no interior
+    termination. LOD shells made from other fine shells than RUN/shells are refused."""
     from shells.levelset.mesh import load_ply
     from shells.render.raycast import ShellScene  # Mitsuba: only for the commands that cast
 
+    outer_path, inner_path = run.shell_files(which)
     if not run.outer.is_file():
         raise InputError(f"{run.outer}: no outer shell; run shells-extract {run.root} first")
     check_shells(run)
-    outer = load_ply(run.outer)
+    if which == "lod":
+        check_lod(run)
+    outer = load_ply(outer_path)
     if len(outer[1]) == 0:
-        raise InputError(f"{run.outer}: the outer shell is empty; re-run shells-extract")
-    inner = load_ply(run.inner) if run.inner.is_file() else None
+        raise InputError(f"{outer_path}: the outer shell is empty; re-run shells-extract")
+    inner = load_ply(inner_path) if inner_path.is_file() else None
     return ShellScene(outer, inner, variant)
+
+
+def check_lod(run: RunDir) -> None:
+    """RUN/shells/lod must exist and be made from the current RUN/shells (its stats.json keeps
+    their digest)."""
+    stats = run.lod / "stats.json"
+    if not (run.lod / "outer.ply").is_file() or not stats.is_file():
+        raise InputError(f"{run.lod}: no LOD shells; run shells-lod {run.root} first")
+    made_from = read_json(stats, "LOD statistics").get("shells_sha1")
+    if made_from is not None and made_from != shells_digest(run):
+        raise InputError(f"{run.lod}: made from other shells than {run.shells}; run shells-lod "
+                         f"{run.root} again")
 
 
 def shells_source(run: RunDir, step: int) -> dict[str, Any]:
