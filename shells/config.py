@@ -162,9 +162,8 @@ class RenderConfig:
     refine_clear: float = 0.0  # ... all parents' opacity <= this (a halo of the band that the
     # field leaves empty; 0 = only opaque parents, the rule of the issue)
     refine_field_normal: float = 0.1  # parents: 1 - n_face . n_field <= this (silhouette cue)
-    refine_min_share: float = 0.25  # below this share of covered pixels that could be
-    # interpolated at all (not fuzzy, not grazing) the tile is evaluated whole: same image,
-    # without the refinement's bookkeeping
+    refine_min_share: float = 0.25  # below this share of the covered coarse pixels that
+    # could be interpolated at all (not fuzzy, not grazing) the tile is band-rendered as is
 
 
 @dataclass

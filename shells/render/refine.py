@@ -34,9 +34,9 @@ sample is taken, so a pixel whose neighbourhood is simple can be interpolated in
    ray without intervals has no samples: it is background, as in the band render, at every
    level, and is neither evaluated nor interpolated.
 
-When fewer than ``refine_min_share`` of the covered pixels could be interpolated at all (not
-fuzzy, not grazing: cast features only), the tile is evaluated whole, which is the band
-render without the refinement's bookkeeping.
+When fewer than ``refine_min_share`` of the covered coarse pixels could be interpolated at
+all (not fuzzy, not grazing: judged on the cast of the coarse grid alone, before anything
+else), the tile is simply band-rendered: the same image, without the refinement's cost.
 
 Evaluated pixels are bit-identical to the band render (same intervals, same code). A frame
 is refined in tiles of whole rows (a multiple of S) when it is larger than the memory budget
@@ -55,6 +55,7 @@ from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.render.frame import rays_per_batch, render_image, render_intervals
 from shells.render.raycast import Intervals, ShellScene, to_point3f
+from shells.render.sampler import interval_counts
 from shells.render.shading import WHITE
 
 BYTES_PER_PIXEL = 256  # cast features and results of one pixel while refining (upper estimate)
@@ -78,10 +79,14 @@ def render_refined(field: Any,
     """rgb [H, W, 3] float32, samples per pixel [H, W] int32 (0 where interpolated),
     evaluated [H, W] bool and covered [H, W] bool (the cast found intervals)."""
     L = cfg.refine_levels
-    if L == 0:
+
+    def band() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         rgb, spp = render_image(field, origins, dirs, height, width, cfg, "band", scene,
                                 background=background)
         return rgb, spp, spp > 0, spp > 0
+
+    if L == 0:
+        return band()
     if cfg.spp != 1:
         raise InputError(f"--refine {L} with spp {cfg.spp}: refinement works on pixel-centre "
                          "rays; use --spp 1")
@@ -90,6 +95,11 @@ def render_refined(field: Any,
         raise InputError(f"{origins.shape[0]} rays for a {width}x{height} image")
     o = origins.float().contiguous()
     d = dirs.float().contiguous()
+    S = 1 << L
+    probe = (torch.arange(0, height, S)[:, None] * width
+             + torch.arange(0, width, S)[None, :]).reshape(-1)
+    if not _hopeful(_cast(scene, o[probe], d[probe], cfg), cfg):
+        return band()  # little to gain (judged on the coarse pixels): the band render as is
     cast = _cast(scene, o, d, cfg)
     bg = torch.tensor(background, dtype=torch.float32)
     colour = bg.repeat(R, 1)
@@ -124,12 +134,6 @@ def render_refined(field: Any,
                                 indexing="ij")
         return xs.reshape(-1), ys.reshape(-1)
 
-    hopeful = covered & cast["single"] & (cast["cos"] >= cfg.refine_grazing)
-    if int(hopeful.sum()) < cfg.refine_min_share * int(covered.sum()):
-        evaluate(torch.nonzero(covered).squeeze(1))  # little to gain: the band render as is
-        return (colour.reshape(height, width, 3), spp.reshape(height, width),
-                evaluated.reshape(height, width), covered.reshape(height, width))
-    S = 1 << L
     xs, ys = grid(S)
     idx = ys * width + xs
     evaluate(idx[covered[idx]])
@@ -162,42 +166,66 @@ def render_refined(field: Any,
 
 def _cast(scene: ShellScene, o: torch.Tensor, d: torch.Tensor,
           cfg: RenderConfig) -> dict[str, torch.Tensor]:
-    """Step 1 of the module docstring, as CPU torch tensors per pixel."""
-    iv = scene.intervals(o, d, cfg.dp_max).torch()
+    """Step 1 of the module docstring: per-pixel torch tensors (zero-copy views of Dr.Jit
+    arrays, computed in one kernel)."""
+    iv = scene.intervals(o, d, cfg.dp_max)
     t_hit, n_hit = scene.first_hit(o, d)
-    out = {k: v.cpu().clone() for k, v in iv.items()}
-    out["t_hit"] = t_hit.torch().cpu().clone()
-    out["n_hit"] = torch.stack([n_hit[i].torch().cpu().clone() for i in range(3)], 1)
-    K = out["enter"].shape[1]
-    valid = torch.arange(K)[None, :] < out["count"][:, None].long()
-    width = (out["exit"] - out["enter"]).clamp_min(0.0)
-    n = torch.ceil((width - cfg.w_s).clamp_min(0.0) / cfg.delta_s) + 1.0  # Procedure 3
-    out["single"] = ((n <= cfg.refine_fuzzy_samples) | ~valid).all(1)  # not fuzzy
-    out["solid"] = torch.isfinite(out["t_inner"]) & (out["count"] > 0)
-    out["cos"] = (out["n_hit"] * d.cpu()).sum(1).abs()
+    R, K = iv.enter.shape
+    slot = dr.arange(mi.UInt32, R * K)
+    count = mi.UInt32(iv.count.array)
+    valid = (slot % K) < dr.repeat(count, K)
+    n = interval_counts(dr.maximum(iv.exit.array - iv.enter.array, 0.0), cfg.w_s, cfg.delta_s,
+                        cfg.n_max)  # Procedure 3
+    n = dr.select(valid, n, 0)
+    most = dr.block_reduce(dr.ReduceOp.Max, n, K) if K > 1 else n
+    single = mi.Float(most <= cfg.refine_fuzzy_samples)  # not fuzzy
+    solid = mi.Float(dr.isfinite(iv.t_inner.array) & (count > 0))
+    cos = dr.abs(dr.dot(n_hit, to_point3f(d, mi.Vector3f)))
+    dr.eval(single, solid, cos)
+    out = iv.torch()
+    out["t_hit"] = t_hit.torch()
+    out["n_hit"] = torch.stack([n_hit[a].torch() for a in range(3)], 1)
+    out["single"] = single.torch() > 0.5
+    out["solid"] = solid.torch() > 0.5
+    out["cos"] = cos.torch()
     return out
+
+
+def _hopeful(cast: dict[str, torch.Tensor], cfg: RenderConfig) -> bool:
+    """Whether at least refine_min_share of the covered pixels could be interpolated at all
+    (not fuzzy, not grazing: the cast's own tests)."""
+    covered = cast["count"] > 0
+    could = covered & cast["single"] & (cast["cos"] >= cfg.refine_grazing)
+    return int(could.sum()) >= cfg.refine_min_share * max(int(covered.sum()), 1)
 
 
 def _agree(cast: dict[str, torch.Tensor], idx: torch.Tensor, par: torch.Tensor,
            colour: torch.Tensor, opacity: torch.Tensor, nfield: torch.Tensor,
            cfg: RenderConfig) -> torch.Tensor:
-    """Which new pixels ``idx`` [N] may be interpolated from their parents ``par`` [N, 4]."""
-    count = cast["count"]
-    same = (count[par] == count[idx, None]).all(1)
-    same &= (cast["solid"][par] == cast["solid"][idx, None]).all(1)
-    ok = same & cast["single"][idx] & cast["single"][par].all(1)
-    n_p, n_par = cast["n_hit"][idx], cast["n_hit"][par]
-    ok &= ((n_par * n_p[:, None, :]).sum(-1) >= cfg.refine_normal_cos).all(1)
+    """Which new pixels ``idx`` [N] may be interpolated from their parents ``par`` [N, 4].
+
+    The tests are applied in stages, the pixel's own (cheap) first, each stage on the pixels
+    that passed the previous ones."""
+    ok = torch.zeros(len(idx), dtype=torch.bool)
     t = cast["t_hit"][idx]
-    t_par = cast["t_hit"][par].mean(1)
-    ok &= torch.isfinite(t) & ((t - t_par).abs() <= cfg.refine_depth * t)
-    ok &= cast["cos"][idx] >= cfg.refine_grazing
-    c = colour[par]  # [N, 4, 3]
-    ok &= ((c.amax(1) - c.amin(1)) <= cfg.refine_colour).all(1)
-    a = opacity[par]
+    keep = cast["single"][idx] & (cast["cos"][idx] >= cfg.refine_grazing) & torch.isfinite(t)
+    live = torch.nonzero(keep).squeeze(1)
+    i, p, t = idx[live], par[live], t[live]
+    count = cast["count"]
+    keep = ((count[p] == count[i, None]) & (cast["solid"][p] == cast["solid"][i, None])
+            & cast["single"][p]).all(1)
+    keep &= (t - cast["t_hit"][p].mean(1)).abs() <= cfg.refine_depth * t
+    live, i, p = live[keep], i[keep], p[keep]
+    n_par = cast["n_hit"][p]  # [N, 4, 3]
+    keep = ((n_par * cast["n_hit"][i][:, None, :]).sum(-1) >= cfg.refine_normal_cos).all(1)
+    c = colour[p]  # [N, 4, 3]
+    keep &= ((c.amax(1) - c.amin(1)) <= cfg.refine_colour).all(1)
+    live, p, n_par = live[keep], p[keep], n_par[keep]
+    a = opacity[p]
     clear = (a <= cfg.refine_clear).all(1)
-    ok &= (a >= cfg.refine_opaque).all(1) | clear
-    nf = nfield[par]
+    nf = nfield[p]
     nf = nf / nf.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    ok &= (1.0 - (nf * n_par).sum(-1) <= cfg.refine_field_normal).all(1) | clear
+    keep = (a >= cfg.refine_opaque).all(1)
+    keep &= (1.0 - (nf * n_par).sum(-1) <= cfg.refine_field_normal).all(1)
+    ok[live[keep | clear]] = True
     return ok
