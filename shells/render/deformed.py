@@ -4,7 +4,7 @@ Given the cage at rest (vertices X, tetrahedra T) and deformed (vertices x):
 
 * the shells move with the cage: each M+ / M- vertex keeps its barycentric coordinates in its
   rest tetrahedron (`shells.levelset.cage.build_cage` stores them), so its deformed position
-  is the same combination of the deformed tetrahedron's vertices (`deformed_shells`); rays
+  is the same combination of the deformed tetrahedron's vertices (`deformed_positions`); rays
   are cast against the deformed shells exactly as in band mode (`shells.render.frame`);
 * every band sample x is mapped back to the rest pose through the deformed tetrahedron that
   holds it (`shells.levelset.cage.TetLocator`): inside tetrahedron k the map is affine,
@@ -19,6 +19,9 @@ Given the cage at rest (vertices X, tetrahedra T) and deformed (vertices x):
 
 `DeformedField` has the field interface of the Dr.Jit renderer (``eval(x, d) -> FieldSample``),
 so one batched evaluation per ray batch renders a deformed frame with `render_image` as is.
+`CageAsset.pose` gives both for a cage pose, moving one ShellScene in place. Everything is in
+the current Mitsuba variant's arrays, so the CUDA variant runs the same code (untested here:
+no GPU was available).
 """
 
 from __future__ import annotations
