@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 
 import drjit as dr
 import mitsuba as mi
@@ -338,52 +336,48 @@ def test_motion_file_is_checked(tmp_path):
 # Commands
 # --------------------------------------------------------------------------------------------
 
-def _cli(*args: str) -> subprocess.CompletedProcess:
-    code = "import sys; from shells.cli import {0}; sys.exit({0}(sys.argv[1:]))"
-    return subprocess.run([sys.executable, "-c", code.format(args[0]), *args[1:]],
-                          capture_output=True, text=True)
-
-
 @pytest.mark.slow
-def test_cage_and_animate_commands(tmp_path):
+def test_cage_and_animate_commands(tmp_path, capsys):
+    import imageio.v2 as iio2
     import imageio.v3 as iio
 
+    from shells.cli import animate_main, cage_main, render_main
     from tests.conftest import tiny_config, trained_run
 
-    run = trained_run(tmp_path, tiny_config(train_iters=30))
-    r = _cli("animate_main", str(run), "--motion", "still", "--frames", "2")
-    assert r.returncode == 2 and "run shells-cage first" in r.stderr
-    assert len(r.stderr.strip().splitlines()) == 1
-    r = _cli("cage_main", str(run), "--threads", "1", "--resolution", "24",
-             "--edge-length", "0.1")
-    assert r.returncode == 0, r.stderr
+    run = trained_run(tmp_path, tiny_config())
+    capsys.readouterr()
+
+    def one_line_error(status: int) -> str:
+        err = capsys.readouterr().err.strip().splitlines()
+        assert status == 2 and len(err) == 1, err
+        return err[0]
+
+    assert "run shells-cage" in one_line_error(
+        animate_main([str(run), "--motion", "still", "--frames", "2"]))
+    assert cage_main([str(run), "--threads", "1", "--resolution", "24",
+                      "--edge-length", "0.1"]) == 0
     stats = json.loads((run / "cage" / "cage.json").read_text())
     assert stats["watertight"] and stats["tetrahedra"] > 0
     assert (run / "cage" / "cage.vtu").read_text().startswith("<?xml")
-    r = _cli("animate_main", str(run), "--motion", "nonsense", "--frames", "2")
-    assert r.returncode == 2 and "--motion nonsense" in r.stderr
+    assert "--motion nonsense" in one_line_error(
+        animate_main([str(run), "--motion", "nonsense", "--frames", "2"]))
     assert not (run / "animate-nonsense").exists()
     # the identity motion: every frame is the band render of the same camera
-    r = _cli("animate_main", str(run), "--motion", "still", "--frames", "2")
-    assert r.returncode == 0, r.stderr
-    r = _cli("render_main", str(run), "--split", "test")
-    assert r.returncode == 0, r.stderr
+    assert animate_main([str(run), "--motion", "still", "--frames", "2"]) == 0
+    assert render_main([str(run), "--split", "test"]) == 0
     a = iio.imread(run / "animate-still" / "r_001.png").astype(int)
     b = iio.imread(run / "render-band" / "r_000.png").astype(int)
     assert np.abs(a - b).max() <= 1
-    r = _cli("animate_main", str(run), "--motion", "wind", "--frames", "3")
-    assert r.returncode == 0, r.stderr
+    assert animate_main([str(run), "--motion", "wind", "--frames", "3"]) == 0
     out = run / "animate-wind"
-    import imageio.v2 as iio2
     assert len(iio2.mimread(out / "video.mp4")) == 3  # decodes with the ffmpeg plugin
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"] == 3 and m["motion"]["name"] == "wind"
     with np.load(out / "motion.npz") as z:
         assert z["positions"].shape == (3, stats["vertices"], 3)
     # a motion file: the saved wind poses replayed give the same frames
-    r = _cli("animate_main", str(run), "--motion", str(out / "motion.npz"), "--out",
-             str(tmp_path / "replay"))
-    assert r.returncode == 0, r.stderr
+    assert animate_main([str(run), "--motion", str(out / "motion.npz"), "--out",
+                         str(tmp_path / "replay")]) == 0
     for k in range(3):
         assert np.array_equal(iio.imread(out / f"r_{k:03d}.png"),
                               iio.imread(tmp_path / "replay" / f"r_{k:03d}.png"))
