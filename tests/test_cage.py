@@ -197,6 +197,40 @@ def test_rigid_motion_equals_the_moved_camera(capsule):
     assert value >= 40.0, value
 
 
+def test_rigid_motion_of_a_trained_toy_run_equals_the_moved_camera(tmp_path):
+    """The same check on a trained run: its torch-trained field (Dr.Jit twin), its extracted
+    shells and an fTetWild cage of them."""
+    from shells.datasets import load_dataset
+    from shells.fields.drjit_field import DrJitField
+    from shells.levelset.mesh import load_ply
+    from shells.render.views import render_view
+    from shells.run import RunDir, load_field, load_shells, read_run
+    from tests.conftest import tiny_config, trained_run
+
+    run = RunDir(trained_run(tmp_path, tiny_config(train_iters=30)))
+    field, cfg = load_field(run.root)
+    dj = DrJitField(field)
+    outer, inner = load_ply(run.outer), load_ply(run.inner)
+    cage, emb = build_cage(outer, inner, resolution=24, edge_length=0.1, threads=1)
+    frame = AssetFrame.of(cage.vertices)
+    R, lift = rigid_motion(0.6, frame)
+    dfield, dscene = CageAsset(dj, cage.vertices, cage.tets, emb, outer[1],
+                               inner[1]).pose(rigid(cage.vertices, 0.6, frame))
+    data = load_dataset(read_run(run)["data"], "test")
+    cams = data.cameras[:1].resized(48, 48)
+    bg = tuple(cfg.data.background)
+    got = render_view(dfield, cams, 0, cfg.render, "band", dscene, data.aabb, bg)[0]
+    # the camera moved by the inverse motion x -> R^T (x - c - l) + c
+    Rt = torch.as_tensor(R.T, dtype=torch.float32)
+    c, l = (torch.as_tensor(v, dtype=torch.float32) for v in (frame.centre, lift))
+    cams.c2w[0, :3, :3] = Rt @ cams.c2w[0, :3, :3]
+    cams.c2w[0, :3, 3] = Rt @ (cams.c2w[0, :3, 3] - c - l) + c
+    want = render_view(dj, cams, 0, cfg.render, "band", load_shells(run), data.aabb, bg)[0]
+    assert (want - torch.tensor(bg)).abs().amax(-1).gt(0.05).float().mean() > 0.05  # visible
+    value = psnr(got, want)
+    assert value >= 40.0, value
+
+
 def _opacity(field, scene, o, d) -> np.ndarray:
     """Opacity of the band render per ray, before the solid-end rule (a hole shows here even
     where the ray ends on M-)."""
