@@ -1,7 +1,7 @@
 """Cost of a deformed frame against the undeformed band frame of the same view (issue 15).
 
     python bench/deform_speed.py RUN [--motion wind] [--sizes 128 256 512] [--zoom 1]
-        [--repeats 5] [--json OUT]
+        [--shells fine|lod] [--repeats 5] [--json OUT]
 
 RUN needs a cage (shells-cage). For each frame size, camera ``--view`` of the test split is
 rendered (a) undeformed in band mode and (b) with the cage posed by ``--motion`` at mid-
@@ -33,6 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--zoom", type=float, default=1.0)
     ap.add_argument("--view", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--shells", choices=["fine", "lod"], default="fine")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
@@ -51,8 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     rc, bg = cfg.render, tuple(cfg.data.background)
     variant = mitsuba_variant(rc.variant)
     dj = DrJitField(field)
-    scene = load_shells(run, variant)
-    cage, emb, outer, inner = load_cage(run)
+    scene = load_shells(run, variant, args.shells)
+    cage, emb, outer, inner = load_cage(run, args.shells)
     data = load_dataset(meta["data"], "test", downscale=int(meta["downscale"]), background=bg)
     up = capture_up(meta["data"], data)
     pose = ANALYTIC[args.motion](cage.vertices, 0.5, AssetFrame.of(cage.vertices, up))
@@ -82,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{size}x{size}: band {1e3 * b:7.1f} ms | deformed: pose {1e3 * p:6.1f} ms + "
               f"render {1e3 * r:7.1f} ms | ratio {r / b:4.2f} (render) {(p + r) / b:4.2f} "
               f"(with pose) | spp {spp_b:.2f} / {spp_d:.2f}", flush=True)
-    doc = {"run": str(run.root), "motion": args.motion, "view": args.view, "zoom": args.zoom,
+    doc = {"run": str(run.root), "shells": args.shells, "motion": args.motion, "view": args.view, "zoom": args.zoom,
            "cage_vertices": int(len(cage.vertices)), "cage_tetrahedra": int(len(cage.tets)),
            "rows": rows,
            "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores, {variant}"}

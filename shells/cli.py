@@ -505,6 +505,9 @@ def cage_parser() -> argparse.ArgumentParser:
                    help="target tetrahedron edge as a share of the box diagonal (default 0.06; "
                         "smaller: finer cage, smoother bends, slower)")
     p.add_argument("--threads", type=int, default=0, help="fTetWild threads (default all)")
+    p.add_argument("--shells", choices=["fine", "lod"], default="fine",
+                   help="cage the fine shells (RUN/cage, default) or the LOD shells of "
+                        "shells-lod (RUN/cage/lod)")
     return p
 
 
@@ -513,13 +516,13 @@ def _cage(args: argparse.Namespace) -> int:
 
     with _locked_run(args.run, "shells-cage"):
         st = cage_run(args.run, args.margin, args.resolution, args.edge_length,
-                      threads=args.threads)
+                      threads=args.threads, shells=args.shells)
     q = st["quality"]
     print(f"cage: {st['vertices']} vertices, {st['tetrahedra']} tetrahedra, watertight "
           f"{st['watertight']}, quality min {q['min']:.3f} / median {q['median']:.3f}; "
           f"contains all {st['contains_outer_vertices']} M+ and "
           f"{st['contains_inner_vertices']} M- vertices; "
-          f"{sum(st['timings_s'].values()):.1f} s -> {args.run}/cage/")
+          f"{sum(st['timings_s'].values()):.1f} s -> {st['out']}")
     return 0
 
 
@@ -550,6 +553,9 @@ def animate_parser() -> argparse.ArgumentParser:
     p.add_argument("--zoom", type=float, default=1.0,
                    help="focal length factor of the camera (default 1)")
     p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest")
+    p.add_argument("--shells", choices=["fine", "lod"], default="fine",
+                   help="deform the fine shells (default) or the LOD shells; their cage must "
+                        "exist (shells-cage [--shells lod])")
     return p
 
 
@@ -560,7 +566,8 @@ def _animate(args: argparse.Namespace) -> int:
     out = animate_out(RunDir(args.run), args.motion, args.out)
     with _locked(output_lock(out), "shells-animate"):
         m = animate_run(args.run, args.motion, args.frames, args.fps, args.out, args.split,
-                        args.view, args.width, args.height, args.zoom, args.stage)
+                        args.view, args.width, args.height, args.zoom, args.stage,
+                        shells=args.shells)
     print(f"{m['frames']} frames ({m['width']}x{m['height']}), {m['ms_per_frame']:.1f} ms/frame "
           f"(render {m['ms_render_per_frame']:.1f}), {m['samples_per_pixel']:.2f} samples/pixel "
           f"-> {m['out']}/video.mp4")

@@ -347,33 +347,38 @@ def demo(out: str | Path, scene: str = "core-fuzz", res: int = 64, views: int = 
 
 def cage_run(run_dir: str | Path, margin: float | None = None, resolution: int = 48,
              edge_length: float = 0.06, epsilon: float = 1e-3,
-             threads: int = 0) -> dict[str, Any]:
-    """Build the tetrahedral cage of RUN/shells (`shells.levelset.cage.build_cage`) and write
-    RUN/cage/{cage.npz, cage.vtu, cage.json}; returns the statistics."""
+             threads: int = 0, shells: str = "fine") -> dict[str, Any]:
+    """Build the tetrahedral cage of RUN/shells (``shells`` 'lod': of RUN/shells/lod;
+    `shells.levelset.cage.build_cage`) and write {cage.npz, cage.vtu, cage.json} into
+    RUN/cage (RUN/cage/lod); returns the statistics."""
     from shells.levelset.cage import build_cage, write_cage
     from shells.levelset.mesh import load_ply
-    from shells.run import check_shells, run_id, shells_digest
+    from shells.run import check_lod, check_shells, run_id, shells_digest
 
     run = RunDir(run_dir)
     read_run(run)
+    outer_path, inner_path = run.shell_files(shells)
     if not run.outer.is_file():
         raise InputError(f"{run.outer}: no outer shell; run shells-extract {run.root} first")
     check_shells(run)
-    outer = load_ply(run.outer)
-    inner = load_ply(run.inner) if run.inner.is_file() else None
+    if shells == "lod":
+        check_lod(run)
+    outer = load_ply(outer_path)
+    inner = load_ply(inner_path) if inner_path.is_file() else None
     cage, emb = build_cage(outer, inner, margin, resolution, edge_length, epsilon, threads)
-    extra = {"run_id": run_id(run), "shells_sha1": shells_digest(run)}
-    run.root.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=run.root, prefix=".cage."))
+    extra = {"run_id": run_id(run), "shells": shells, "shells_sha1": shells_digest(run, shells)}
+    out = run.cage_dir(shells)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
     try:
         write_cage(tmp, cage, emb, extra)
-        commit_files(tmp, run.cage, last="cage.npz")  # the file the other commands read
+        commit_files(tmp, out, last="cage.npz")  # the file the other commands read
     except KeyboardInterrupt:
-        raise Interrupted(f"shells-cage interrupted; {run.cage} is as it was before; run it "
+        raise Interrupted(f"shells-cage interrupted; {out} is as it was before; run it "
                           "again", status=130) from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return {**cage.stats, **extra}
+    return {**cage.stats, **extra, "out": str(out)}
 
 
 def cage_poses(motion: str, rest: np.ndarray, tets: np.ndarray, frames: int, fps: float,
@@ -419,10 +424,12 @@ def animate_out(run: RunDir, motion: str, out: str | Path | None) -> Path:
 def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float = 24.0,
                 out: str | Path | None = None, split: str = "test", view: int = 0,
                 width: int | None = None, height: int | None = None, zoom: float = 1.0,
-                stage: str = "latest", progress: bool = True) -> dict[str, Any]:
+                stage: str = "latest", progress: bool = True,
+                shells: str = "fine") -> dict[str, Any]:
     """Render the asset of RUN deformed by a cage motion, seen by camera ``view`` of ``split``
     (its focal length times ``zoom``): OUT (default RUN/animate-MOTION) gets r_###.png,
-    video.mp4, motion.npz (the cage positions, reusable as --motion FILE) and metrics.json."""
+    video.mp4, motion.npz (the cage positions, reusable as --motion FILE) and metrics.json.
+    ``shells`` 'lod': the LOD shells and their cage (shells-cage --shells lod)."""
     from tqdm.auto import tqdm
 
     from shells.datasets import read_frames
@@ -442,7 +449,7 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
         raise InputError(f"--zoom {zoom}: must be > 0")
     run = RunDir(run_dir)
     meta = check_run(run, "band")
-    cage, emb, outer, inner = load_cage(run)
+    cage, emb, outer, inner = load_cage(run, shells)
     loaded = resolve_stage(run, stage)
     field, cfg = load_field(run.root, device="cpu", stage=loaded)
     rc, bg = cfg.render, tuple(cfg.data.background)
@@ -477,6 +484,7 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
         warm = total[1:] or total
         metrics = {
             "motion": source, "frames": len(P), "fps": fps, "split": split, "view": view,
+            "shells": shells,
             "zoom": zoom, "width": cams.width, "height": cams.height, "stage": loaded,
             "variant": variant, "cage_vertices": len(cage.vertices),
             "cage_tetrahedra": len(cage.tets),

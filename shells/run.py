@@ -14,7 +14,8 @@ Layout::
     RUN/finetune_log.jsonl    stage 2 log
     RUN/finetune_summary.json stage 2 finished
     RUN/render-MODE/          images and metrics.json (shells-render)
-    RUN/cage/                 cage.npz, cage.vtu, cage.json: the tetrahedral cage (shells-cage)
+    RUN/cage/                 cage.npz, cage.vtu, cage.json: the tetrahedral cage (shells-cage);
+                              RUN/cage/lod/ the same for the LOD shells (--shells lod)
     RUN/animate-MOTION/       frames, video.mp4, motion.npz, metrics.json (shells-animate)
     RUN/.lock                 held by the command writing the run (`lock`): pid, host, command
 
@@ -111,9 +112,10 @@ class RunDir:
     def cage(self) -> Path:
         return self.root / "cage"
 
-    @property
-    def cage_file(self) -> Path:
-        return self.cage / "cage.npz"
+    def cage_dir(self, which: str = "fine") -> Path:
+        """RUN/cage: the cage of the fine shells; RUN/cage/lod: that of the LOD shells."""
+        self.shell_files(which)  # checks the name
+        return self.cage if which == "fine" else self.cage / "lod"
 
     def animate_dir(self, motion: str) -> Path:
         return self.root / f"animate-{motion}"
@@ -410,32 +412,40 @@ def check_shells(run: RunDir) -> None:
                              f"is now at step {step}; {fix}")
 
 
-def shells_digest(run: RunDir) -> str:
-    """A content hash of RUN/shells/outer.ply and inner.ply: what a cage was built from."""
+def shells_digest(run: RunDir, which: str = "fine") -> str:
+    """A content hash of the shells' outer.ply and inner.ply (RUN/shells, or RUN/shells/lod for
+    ``which`` 'lod'): what a cage or a LOD was built from."""
     h = hashlib.sha1()
-    for p in (run.outer, run.inner):
+    for p in run.shell_files(which):
         h.update(p.read_bytes() if p.is_file() else b"")
     return h.hexdigest()
 
 
-def load_cage(run: RunDir) -> tuple[Any, dict[str, Any], tuple[Any, Any], tuple[Any, Any]]:
-    """The cage of RUN/cage (shells-cage) with the shells it embeds: (Cage, embedding, outer
-    (V, F), inner (V, F)). A cage built from other shells than RUN/shells is refused."""
+def load_cage(run: RunDir, which: str = "fine"
+              ) -> tuple[Any, dict[str, Any], tuple[Any, Any], tuple[Any, Any]]:
+    """The cage of RUN/cage (shells-cage; RUN/cage/lod for the LOD shells) with the shells it
+    embeds: (Cage, embedding, outer (V, F), inner (V, F)). A cage built from other shells than
+    the current ones is refused."""
     from shells.levelset.cage import read_cage
     from shells.levelset.mesh import load_ply
 
     check_shells(run)
-    cage, emb = read_cage(run.cage_file)
-    meta = run.cage / "cage.json"
+    if which == "lod":
+        check_lod(run)
+    folder = run.cage_dir(which)
+    fix = f"run shells-cage {run.root}{' --shells lod' if which == 'lod' else ''} again"
+    cage, emb = read_cage(folder / "cage.npz")
+    meta = folder / "cage.json"
     built_from = read_json(meta, "cage statistics").get("shells_sha1") if meta.is_file() else None
-    if built_from is not None and built_from != shells_digest(run):
-        raise InputError(f"{run.cage}: the cage was built from other shells than "
-                         f"{run.shells}; run shells-cage {run.root} again")
-    outer = load_ply(run.outer)
-    inner = load_ply(run.inner) if run.inner.is_file() else (outer[0][:0], outer[1][:0])
+    if built_from is not None and built_from != shells_digest(run, which):
+        raise InputError(f"{folder}: the cage was built from other shells than the current "
+                         f"{which} shells; {fix}")
+    outer_path, inner_path = run.shell_files(which)
+    outer = load_ply(outer_path)
+    inner = load_ply(inner_path) if inner_path.is_file() else (outer[0][:0], outer[1][:0])
     if len(emb["outer_tet"]) != len(outer[0]) or len(emb["inner_tet"]) != len(inner[0]):
-        raise InputError(f"{run.cage_file}: its shell embedding does not match {run.shells}; "
-                         f"run shells-cage {run.root} again")
+        raise InputError(f"{folder / 'cage.npz'}: its shell embedding does not match the "
+                         f"{which} shells; {fix}")
     return cage, emb, outer, inner
 
 

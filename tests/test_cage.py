@@ -393,6 +393,7 @@ def test_cage_and_animate_commands(tmp_path, capsys):
     stats = json.loads((run / "cage" / "cage.json").read_text())
     assert stats["watertight"] and stats["tetrahedra"] > 0
     assert (run / "cage" / "cage.vtu").read_text().startswith("<?xml")
+    assert "run shells-lod" in one_line_error(cage_main([str(run), "--shells", "lod"]))
     assert "--motion nonsense" in one_line_error(
         animate_main([str(run), "--motion", "nonsense", "--frames", "2"]))
     assert not (run / "animate-nonsense").exists()
