@@ -13,13 +13,14 @@ partial output.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import shutil
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import torch
@@ -85,6 +86,21 @@ def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
     shells.stats["source"] = source  # which run and stage-1 step (shells.run.check_shells)
     write_shells(shells, run.shells)
     return shells.stats
+
+
+@contextlib.contextmanager
+def _staged(out: Path, command: str) -> Iterator[Path]:
+    """A hidden staging folder beside ``out`` for a command's files (the caller moves them in
+    with `commit_files`); removed at the end, and a Ctrl-C leaves ``out`` as it was."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    try:
+        yield tmp
+    except KeyboardInterrupt:
+        raise Interrupted(f"{command} interrupted; {out} is as it was before; run it again",
+                          status=130) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _named(exc: OSError, out: Path) -> OSError:
@@ -352,32 +368,17 @@ def cage_run(run_dir: str | Path, margin: float | None = None, resolution: int =
     `shells.levelset.cage.build_cage`) and write {cage.npz, cage.vtu, cage.json} into
     RUN/cage (RUN/cage/lod); returns the statistics."""
     from shells.levelset.cage import build_cage, write_cage
-    from shells.levelset.mesh import load_ply
-    from shells.run import check_lod, check_shells, run_id, shells_digest
+    from shells.run import run_id, shell_meshes, shells_digest
 
     run = RunDir(run_dir)
     read_run(run)
-    outer_path, inner_path = run.shell_files(shells)
-    if not run.outer.is_file():
-        raise InputError(f"{run.outer}: no outer shell; run shells-extract {run.root} first")
-    check_shells(run)
-    if shells == "lod":
-        check_lod(run)
-    outer = load_ply(outer_path)
-    inner = load_ply(inner_path) if inner_path.is_file() else None
+    outer, inner = shell_meshes(run, shells)
     cage, emb = build_cage(outer, inner, margin, resolution, edge_length, epsilon, threads)
     extra = {"run_id": run_id(run), "shells": shells, "shells_sha1": shells_digest(run, shells)}
     out = run.cage_dir(shells)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
-    try:
+    with _staged(out, "shells-cage") as tmp:
         write_cage(tmp, cage, emb, extra)
         commit_files(tmp, out, last="cage.npz")  # the file the other commands read
-    except KeyboardInterrupt:
-        raise Interrupted(f"shells-cage interrupted; {out} is as it was before; run it "
-                          "again", status=130) from None
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return {**cage.stats, **extra, "out": str(out)}
 
 
@@ -465,10 +466,8 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
     asset = CageAsset(DrJitField(field), cage.vertices, cage.tets, emb, outer[1], inner[1],
                       variant)
     out = animate_out(run, motion, out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
     total, render, spp_sum = [], [], 0.0
-    try:
+    with _staged(out, "shells-animate") as tmp:
         for k in tqdm(range(len(P)), desc=f"animate {Path(motion).stem}", unit="frame",
                       disable=not progress):
             t0 = time.perf_counter()
@@ -495,11 +494,6 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
         }
         write_json(tmp / "metrics.json", metrics)
         commit_files(tmp, out, last="metrics.json")
-    except KeyboardInterrupt:
-        raise Interrupted(f"shells-animate interrupted; {out} is as it was before; run it "
-                          "again", status=130) from None
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return metrics
 
 
@@ -514,31 +508,26 @@ def lod_run(run_dir: str | Path, ratio: float = 10.0, parity_rays: int = 100_000
     (triangles, file sizes, offsets used, the containment checks, ray parity)."""
     from shells.errors import read_json
     from shells.levelset.lod import LodParams, make_lod
-    from shells.levelset.mesh import load_ply, write_ply
-    from shells.run import check_shells, shells_digest
+    from shells.levelset.mesh import write_ply
+    from shells.run import shell_meshes, shells_digest
 
     import trimesh
 
     run = RunDir(run_dir)
     read_run(run)
-    if not run.outer.is_file():
-        raise InputError(f"{run.outer}: no outer shell; run shells-extract {run.root} first")
-    check_shells(run)
+    outer, inner = shell_meshes(run)
     fine = read_json(run.shells / "stats.json", "shell statistics; re-run shells-extract")
     if "aabb" not in fine or "spacing" not in fine:
         raise InputError(f"{run.shells / 'stats.json'}: no grid (aabb, spacing); re-run "
                          "shells-extract")
     box, h = np.asarray(fine["aabb"], np.float64), float(min(fine["spacing"]))
     p = LodParams() if kappa is None else LodParams(kappa=kappa)
-    outer = load_ply(run.outer)
-    inner = load_ply(run.inner) if run.inner.is_file() else None
     t0 = time.perf_counter()
     co, ci, stats = make_lod(outer, inner, ratio, box[0], h, p, parity_rays, box)
     stats["seconds"] = time.perf_counter() - t0
     stats["shells_sha1"] = shells_digest(run)
     stats["source"] = fine.get("source")
-    tmp = Path(tempfile.mkdtemp(dir=run.shells, prefix=".lod."))
-    try:
+    with _staged(run.lod, "shells-lod") as tmp:
         write_ply(tmp / "outer.ply", trimesh.Trimesh(*co, process=False))
         write_ply(tmp / "inner.ply", trimesh.Trimesh(*ci, process=False))
         stats["file_bytes"] = {
@@ -547,9 +536,4 @@ def lod_run(run_dir: str | Path, ratio: float = 10.0, parity_rays: int = 100_000
             "fine_inner": run.inner.stat().st_size if run.inner.is_file() else 0}
         write_json(tmp / "stats.json", stats)
         commit_files(tmp, run.lod, last="stats.json")
-    except KeyboardInterrupt:
-        raise Interrupted(f"shells-lod interrupted; {run.lod} is as it was before; run it "
-                          "again", status=130) from None
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return stats

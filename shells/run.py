@@ -355,12 +355,12 @@ def load_field(run_dir: str | Path, device: str | torch.device = "cpu",
 # Shells
 # ---------------------------------------------------------------------------------------------
 
-def load_shells(run: RunDir, variant: str | None = None, which: str = "fine") -> Any:
-    """A `shells.render.raycast.ShellScene` from RUN/shells (``which`` 'fine') or RUN/shells/lod
-    ('lod', shells-lod) (Mitsuba ``variant``); a missing or empty inner.ply means no interior
-    termination. LOD shells made from other fine shells than RUN/shells are refused."""
+def shell_meshes(run: RunDir, which: str = "fine"
+                 ) -> tuple[tuple[Any, Any], tuple[Any, Any] | None]:
+    """The (V, F) arrays of RUN/shells (``which`` 'fine') or RUN/shells/lod ('lod',
+    shells-lod): (outer, inner), inner None when there is no inner.ply. Shells of another run or
+    an older checkpoint, and LOD shells made from other fine shells, are refused."""
     from shells.levelset.mesh import load_ply
-    from shells.render.raycast import ShellScene  # Mitsuba: only for the commands that cast
 
     outer_path, inner_path = run.shell_files(which)
     if not run.outer.is_file():
@@ -368,10 +368,19 @@ def load_shells(run: RunDir, variant: str | None = None, which: str = "fine") ->
     check_shells(run)
     if which == "lod":
         check_lod(run)
-    outer = load_ply(outer_path)
+    return load_ply(outer_path), (load_ply(inner_path) if inner_path.is_file() else None)
+
+
+def load_shells(run: RunDir, variant: str | None = None, which: str = "fine") -> Any:
+    """A `shells.render.raycast.ShellScene` from RUN/shells (``which`` 'fine') or RUN/shells/lod
+    ('lod', shells-lod) (Mitsuba ``variant``); a missing or empty inner.ply means no interior
+    termination. LOD shells made from other fine shells than RUN/shells are refused."""
+    from shells.render.raycast import ShellScene  # Mitsuba: only for the commands that cast
+
+    outer, inner = shell_meshes(run, which)
     if len(outer[1]) == 0:
-        raise InputError(f"{outer_path}: the outer shell is empty; re-run shells-extract")
-    inner = load_ply(inner_path) if inner_path.is_file() else None
+        raise InputError(f"{run.shell_files(which)[0]}: the outer shell is empty; re-run "
+                         "shells-extract")
     return ShellScene(outer, inner, variant)
 
 
@@ -427,11 +436,10 @@ def load_cage(run: RunDir, which: str = "fine"
     embeds: (Cage, embedding, outer (V, F), inner (V, F)). A cage built from other shells than
     the current ones is refused."""
     from shells.levelset.cage import read_cage
-    from shells.levelset.mesh import load_ply
 
-    check_shells(run)
-    if which == "lod":
-        check_lod(run)
+    outer, inner = shell_meshes(run, which)
+    if inner is None:
+        inner = (outer[0][:0], outer[1][:0])
     folder = run.cage_dir(which)
     fix = f"run shells-cage {run.root}{' --shells lod' if which == 'lod' else ''} again"
     cage, emb = read_cage(folder / "cage.npz")
@@ -440,9 +448,6 @@ def load_cage(run: RunDir, which: str = "fine"
     if built_from is not None and built_from != shells_digest(run, which):
         raise InputError(f"{folder}: the cage was built from other shells than the current "
                          f"{which} shells; {fix}")
-    outer_path, inner_path = run.shell_files(which)
-    outer = load_ply(outer_path)
-    inner = load_ply(inner_path) if inner_path.is_file() else (outer[0][:0], outer[1][:0])
     if len(emb["outer_tet"]) != len(outer[0]) or len(emb["inner_tet"]) != len(inner[0]):
         raise InputError(f"{folder / 'cage.npz'}: its shell embedding does not match the "
                          f"{which} shells; {fix}")

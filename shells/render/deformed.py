@@ -49,7 +49,9 @@ class DeformedField:
     """The rest-pose Dr.Jit field ``field`` seen through the cage deformation X -> x."""
 
     def __init__(self, field: Any, rest: np.ndarray, tets: np.ndarray,
-                 deformed: np.ndarray, cells_per_tet: float = 1.0) -> None:
+                 deformed: np.ndarray, cells_per_tet: float = 1.0,
+                 rest_edges: np.ndarray | None = None,  # tet_edges(rest, tets), if known
+                 ) -> None:
         rest = np.asarray(rest, np.float64)
         deformed = np.asarray(deformed, np.float64)
         if deformed.shape != rest.shape:
@@ -57,7 +59,8 @@ class DeformedField:
                              f"{rest.shape}")
         self.field = field
         self.locator = TetLocator(deformed, tets, cells_per_tet)
-        A = tet_edges(rest, tets) @ self.locator.inverse_edges  # Dm Ds^-1 (0 if collapsed)
+        Dm = tet_edges(rest, tets) if rest_edges is None else rest_edges
+        A = Dm @ self.locator.inverse_edges  # Dm Ds^-1 (0 if collapsed)
         b = rest[tets[:, 0]] - np.einsum("mij,mj->mi", A, deformed[tets[:, 0]])
         self.rows = [_vec(mi.Vector3f, A[:, r, :]) for r in range(3)]
         self.offset = _vec(mi.Vector3f, b)
@@ -100,6 +103,7 @@ class CageAsset:
                  cells_per_tet: float = 1.0) -> None:
         self.field, self.rest, self.tets = field, np.asarray(rest, np.float64), tets
         self.embedding, self.cells_per_tet = embedding, cells_per_tet
+        self.rest_edges = tet_edges(self.rest, tets)  # the same for every pose
         self.has_inner = len(inner_faces) > 0
         outer, inner = self._shells(self.rest)
         self.scene = ShellScene((outer, outer_faces),
@@ -118,5 +122,5 @@ class CageAsset:
             raise InputError(f"cage pose of shape {deformed.shape}: this cage has "
                              f"{self.rest.shape} vertices")
         self.scene.move(*self._shells(deformed))
-        return (DeformedField(self.field, self.rest, self.tets, deformed, self.cells_per_tet),
-                self.scene)
+        return (DeformedField(self.field, self.rest, self.tets, deformed, self.cells_per_tet,
+                              self.rest_edges), self.scene)
