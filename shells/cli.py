@@ -326,7 +326,7 @@ def _finetune(args: argparse.Namespace) -> int:
 
 
 def finetune_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_finetune, finetune_parser(), argv, ("shells.finetune",))
+    return _run(_finetune, finetune_parser(), argv, ("shells.finetune", "shells.levelset.mesh"))
 
 
 def render_parser() -> argparse.ArgumentParser:
@@ -421,7 +421,7 @@ def _render(args: argparse.Namespace) -> int:
 def render_main(argv: Sequence[str] | None = None) -> int:
     return _run(_render, render_parser(), argv,
                 ("shells.pipeline", "shells.render.views", "shells.fields.drjit_field",
-                 "shells.camera_paths"))
+                 "shells.camera_paths", "shells.levelset.mesh"))
 
 
 def demo_parser() -> argparse.ArgumentParser:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from shells.errors import InputError
+from shells.errors import InputError, uninterrupted
 
 
 def torch_device(name: str | None = None) -> torch.device:
@@ -38,5 +38,8 @@ def mitsuba_variant(name: str | None = None, device: torch.device | str | None =
     if name not in mi.variants():
         raise InputError(f"Mitsuba variant '{name}' is not available; choose from {mi.variants()}")
     if mi.variant() != name:
-        mi.set_variant(name)
+        # setting a variant imports Mitsuba's Python plugins; a Ctrl-C in the middle of that
+        # import leaves a SystemError and a traceback, so it waits until the import is done
+        with uninterrupted():
+            mi.set_variant(name)
     return name
