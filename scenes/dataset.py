@@ -25,7 +25,7 @@ from scenes import content
 from scenes.cameras import gl_to_mitsuba, sample_poses
 from scenes.content import SceneSpec
 from scenes.opacity import opacity
-from shells.errors import InputError, atomic_write, write_json
+from shells.errors import InputError, atomic_write, write_image, write_json
 
 Builder = Callable[[np.random.Generator], SceneSpec]
 SCENES: dict[str, Builder] = {
@@ -132,9 +132,7 @@ def to_rgba8(premultiplied: np.ndarray,  # [H, W, 3] linear premultiplied colour
 
 
 def _write_png(path: Path, rgba8: np.ndarray) -> None:
-    import imageio.v3 as iio
-
-    atomic_write(path, lambda p: iio.imwrite(p, rgba8, extension=".png"))
+    atomic_write(path, lambda p: write_image(p, rgba8, extension=".png"))
 
 
 def make_scene(name: str, out: str | Path, res: int = 64, views: int = 32, test_views: int = 8,

@@ -10,6 +10,7 @@ folder: a second command on the same run is refused at once (`shells.run.lock`).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import signal
@@ -17,7 +18,8 @@ import sys
 import traceback
 from typing import Callable, Sequence
 
-from shells.errors import InputError, Interrupted, uninterrupted, write_failure
+from shells.errors import (InputError, Interrupted, final_commit, late_signal, uninterrupted,
+                           write_failure)
 
 
 class _Lazy:
@@ -39,11 +41,16 @@ def _launched_world() -> int:
 
 
 def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.ArgumentParser,
-         argv: Sequence[str] | None, preload: Sequence[str] = ()) -> int:
+         argv: Sequence[str] | None, preload: Sequence[str] = (), final: bool = True) -> int:
     """Parse, run ``fn``, report. The modules in ``preload`` (the command's heavy imports:
     torch, Dr.Jit, Mitsuba, ...) are imported first with SIGINT / SIGTERM held back: a library
     interrupted half-way through its import fails in its own odd ways, so a Ctrl-C then
-    takes effect right after the imports."""
+    takes effect right after the imports. ``final``: the command's output commit is its last
+    step (`final_commit`; not so for shells-demo, which commits one stage after another).
+
+    Run as a program (``argv`` None), the command ignores SIGINT / SIGTERM once it has its
+    status: a Ctrl-C while the interpreter shuts down (torch's and Dr.Jit's exit handlers take
+    a moment) would otherwise print a traceback after the result."""
     args = parser.parse_args(argv)
     previous = signal.signal(signal.SIGTERM, _terminate)  # torchrun stops workers by SIGTERM
     status = 1
@@ -51,7 +58,12 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
         with uninterrupted():
             for name in preload:
                 importlib.import_module(name)
-        status = int(fn(args) or 0)
+        with final_commit(then_ignore=argv is None) if final else contextlib.nullcontext():
+            status = int(fn(args) or 0)
+        if final and late_signal() is not None:
+            print(f"{parser.prog}: {signal.Signals(late_signal()).name} came while the outputs "
+                  "were being put in place; they are complete, the command had finished",
+                  file=sys.stderr)
     except InputError as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         status = 2
@@ -63,7 +75,10 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
         status = 130
     except Exception as exc:
         err = write_failure(exc) if isinstance(exc, OSError) else None
-        if err is not None:  # a refused write (disk full, read-only folder): one line, status 2
+        if _interrupt_within(exc):  # Dr.Jit wraps an exception of a traced loop body
+            print(f"{parser.prog}: interrupted", file=sys.stderr)
+            status = 130
+        elif err is not None:  # a refused write (disk full, read-only folder): one line, status 2
             print(f"{parser.prog}: error: {err}", file=sys.stderr)
             status = 2
         elif _launched_world() <= 1:
@@ -72,10 +87,29 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
             traceback.print_exc()  # a torchrun worker leaves through os._exit: print it first
             status = 1
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        with uninterrupted():  # a signal held back here finds the program ignoring it
+            if argv is None:
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            else:
+                signal.signal(signal.SIGTERM, previous)
         if _launched_world() > 1:
             _leave_job(status)  # does not return
     return status
+
+
+def _interrupt_within(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised because of a KeyboardInterrupt (its cause or context, at any
+    depth): Dr.Jit turns one raised inside a traced loop into "RuntimeError:
+    dr.while_loop(): encountered an exception"."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 def _leave_job(status: int) -> None:
@@ -96,8 +130,6 @@ def _leave_job(status: int) -> None:
 def _locked(path: object, command: str):  # -> context manager
     """The lock file ``path`` of an output folder (`shells.run.lock`), held by rank 0 of a
     torchrun job (its other ranks write nothing)."""
-    import contextlib
-
     from shells.run import lock
 
     return lock(path, command) if distributed.launched_rank() == 0 else contextlib.nullcontext()
@@ -389,8 +421,6 @@ def _render(args: argparse.Namespace) -> int:
         if not (n >= 1 and 0 <= k < n):
             raise InputError(f"--shard {args.shard}: need 0 <= K < N")
         shard = (k, n)
-    import contextlib
-
     from shells.pipeline import render_out
     from shells.run import RunDir, output_lock
 
@@ -449,7 +479,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def demo_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_demo, demo_parser(), argv)
+    return _run(_demo, demo_parser(), argv, final=False)
 
 
 # --------------------------------------------------------------------------------------------

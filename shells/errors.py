@@ -9,6 +9,9 @@ Outputs are all-or-nothing: a file is written through a temporary sibling and re
 place (`atomic_write`); a folder of outputs is written into a hidden staging folder and its
 files moved in by `commit_files`, with SIGINT / SIGTERM held back while they move
 (`uninterrupted`), so an interrupted or failed command leaves the old outputs or the new ones.
+A command whose commit is its last step (`final_commit`) keeps a signal that arrives during the
+commit from turning a finished command into an "interrupted" one: the outputs are complete by
+then, so the command ends as done and says so (`late_signal`).
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ from typing import Any, Callable, Iterator
 WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
                           errno.ENOTDIR, errno.EISDIR, errno.EEXIST, errno.ENAMETOOLONG,
                           errno.EFBIG})
+
+_SIGNALS = {signal.SIGINT, signal.SIGTERM}  # the ones a command turns into an orderly end
 
 
 class InputError(ValueError):
@@ -54,28 +59,102 @@ def write_failure(exc: OSError, what: str = "") -> "InputError | None":
                       "and run the command again (what was there before is unchanged)")
 
 
+class _Held:
+    """SIGINT / SIGTERM held back: while installed as their handler, a signal is only noted.
+    Python runs signal handlers in the main thread, whichever thread the process received the
+    signal in (torch's and Dr.Jit's worker threads included, which a thread's signal mask
+    would not cover)."""
+
+    def __init__(self) -> None:
+        self.came: list[int] = []
+        self.previous = {s: signal.getsignal(s) for s in _SIGNALS}
+        for s in _SIGNALS:
+            signal.signal(s, self)
+
+    def __call__(self, signum: int, frame: object) -> None:
+        self.came.append(signum)
+
+    def restore(self) -> int | None:
+        """Put the previous handlers back; the first signal that came (not yet delivered)."""
+        for s, h in self.previous.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+        return self.came[0] if self.came else None
+
+
+def _main() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
 @contextlib.contextmanager
 def uninterrupted() -> Iterator[None]:
     """Hold SIGINT and SIGTERM back for the block (main thread): a signal that arrives during it
     is delivered, and raises, once the block is done. For short commit steps only."""
-    if threading.current_thread() is not threading.main_thread():
+    if not _main():
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    held = _Held()
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        came = held.restore()
+        if came is not None:
+            signal.raise_signal(came)  # to the handler there was (KeyboardInterrupt, ...)
+
+
+_final: dict[str, Any] = {"on": False, "held": None, "late": None}  # final_commit's state
+
+
+@contextlib.contextmanager
+def final_commit(then_ignore: bool = False) -> Iterator[None]:
+    """For the block (a command whose `commit_files` is its last step: the CLI's single-output
+    commands), the command is done once its outputs are in place: from the commit on, SIGINT /
+    SIGTERM stay held back until the block ends, and one that came is then taken off instead of
+    raised (`late_signal` tells which), so "interrupted" always means "outputs unchanged".
+    ``then_ignore``: the process ignores both signals from then on (its interpreter shutting
+    down). Without it (training, shells-demo, the library) a signal raises right after a
+    commit, as anywhere else."""
+    _final.update(on=True, held=None, late=None)
+    try:
+        yield
+    finally:
+        held, _final["on"], _final["held"] = _final["held"], False, None
+        if held is not None:  # committed: signals are held back since
+            _final["late"] = held.restore()
+            if then_ignore:
+                for s in _SIGNALS:
+                    signal.signal(s, signal.SIG_IGN)
+
+
+def late_signal() -> int | None:
+    """The signal that `final_commit` took off after the outputs were committed, or None."""
+    return _final["late"]
 
 
 def commit_files(stage: Path, out: Path, last: str | None = None) -> None:
     """Move every file of the staging folder ``stage`` into ``out`` (created), ``last`` (a file
-    name that marks a complete output) at the end, without being interrupted between them."""
-    with uninterrupted():
+    name that marks a complete output) at the end, without being interrupted between them
+    (nor, in a `final_commit` block, after them)."""
+    keep = _main() and _final["on"]
+    held = _Held() if _main() else None
+    try:
         out.mkdir(parents=True, exist_ok=True)
         names = sorted(p.name for p in stage.iterdir())
         for n in [n for n in names if n != last] + [n for n in names if n == last]:
             os.replace(stage / n, out / n)
+    except BaseException:
+        keep = False
+        raise
+    finally:
+        if held is not None:
+            if keep and _final["held"] is None:
+                _final["held"] = held  # held back until final_commit ends
+            elif keep:  # a second commit in the block: the first one's holder stays
+                held.restore()
+                _final["held"].came += held.came
+            else:
+                came = held.restore()
+                if came is not None:
+                    signal.raise_signal(came)
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
@@ -100,6 +179,16 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
         if isinstance(exc, OSError) and exc.filename is None and exc.errno in WRITE_ERRNOS:
             raise OSError(exc.errno, exc.strerror, str(path)) from exc  # name the file
         raise
+
+
+def write_image(path: str | Path, img: Any, extension: str | None = None) -> None:
+    """Write an image file (PNG, JPEG) with imageio, SIGINT / SIGTERM held back meanwhile (a
+    few milliseconds): imageio's writer, interrupted while it opens, fails again in its
+    destructor and prints a traceback after the one-line message."""
+    import imageio.v3 as iio
+
+    with uninterrupted():
+        iio.imwrite(path, img, extension=extension)
 
 
 def write_json(path: str | Path, data: Any) -> None:

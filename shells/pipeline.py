@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from shells.config import override_config
-from shells.errors import WRITE_ERRNOS, InputError, Interrupted, commit_files, write_json
+from shells.errors import (WRITE_ERRNOS, InputError, Interrupted, commit_files, write_image,
+                           write_json)
 from shells.metrics import PROTOCOL
 from shells.run import (RunDir, field_from_checkpoint, load_field, load_shells, read_checkpoint,
                         read_run, resolve_stage, shells_source)
@@ -440,8 +441,6 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
     from shells.render.views import render_view, to_png, write_video
     from shells.run import load_cage
 
-    import imageio.v3 as iio
-
     if frames < 1:
         raise InputError(f"--frames {frames}: need at least 1")
     if not fps > 0:
@@ -476,7 +475,7 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
             total.append(time.perf_counter() - t0)
             render.append(seconds)
             spp_sum += float(spp.double().mean())
-            iio.imwrite(tmp / f"r_{k:03d}.png", to_png(img))
+            write_image(tmp / f"r_{k:03d}.png", to_png(img))
         write_video(sorted(tmp.glob("r_*.png")), tmp / "video.mp4", fps)
         with open(tmp / "motion.npz", "wb") as fh:
             np.savez(fh, positions=P, fps=fps)

@@ -42,7 +42,7 @@ import torch
 from tqdm.auto import tqdm
 
 from shells.datasets import area_downscale
-from shells.errors import InputError
+from shells.errors import InputError, write_image
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 
@@ -74,7 +74,7 @@ def _copy_images(images: list[Path], dst: Path, downscale: int) -> None:
             img = img[..., None]
         small = area_downscale(torch.from_numpy(img.astype(np.float64)), downscale)
         small = small.round().numpy().astype(img.dtype)
-        iio.imwrite(dst / p.name, small if small.shape[-1] > 1 else small[..., 0])
+        write_image(dst / p.name, small if small.shape[-1] > 1 else small[..., 0])
 
 
 def focus_point(c2w: np.ndarray) -> np.ndarray:  # [N, 4, 4] OpenCV -> [3]

@@ -49,7 +49,7 @@ from typing import Any, Iterator
 import torch
 
 from shells.config import Config
-from shells.errors import InputError, atomic_write, read_json, write_json
+from shells.errors import InputError, atomic_write, read_json, uninterrupted, write_json
 from shells.fields.network import ShellField
 
 STAGES = ("stage1", "stage2")
@@ -173,41 +173,46 @@ def lock(path: str | Path, command: str) -> Iterator[None]:
     created = [d for d in path.parents if not d.exists()]  # innermost first
     me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _start_time(os.getpid()),
           "command": command, "since": time.strftime("%Y-%m-%d %H:%M:%S")}
-    for attempt in range(2):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{os.getpid()}")
-        tmp.write_text(json.dumps(me) + "\n")
-        try:
-            os.link(tmp, path)  # atomic: the lock appears with its content, or not at all
-            break
-        except FileExistsError:
-            try:
-                owner = json.loads(path.read_text())
-            except (OSError, ValueError):
-                owner = {}  # removed meanwhile, or not ours: stale
-            if attempt == 0 and not _alive(owner):
-                path.unlink(missing_ok=True)
-                continue
-            raise InputError(
-                f"{path.parent}: in use by {owner.get('command', 'another command')} (pid "
-                f"{owner.get('pid', '?')} on {owner.get('host', '?')}, since "
-                f"{owner.get('since', '?')}); wait for it to end, or delete {path} if that "
-                "process is gone") from None
-        finally:
-            tmp.unlink(missing_ok=True)
-    try:
+    held = False
+    try:  # taken and given up with signals held back: a signal then would strand the lock
+        with uninterrupted():
+            for attempt in range(2):
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_name(f"{path.name}.{os.getpid()}")
+                tmp.write_text(json.dumps(me) + "\n")
+                try:
+                    os.link(tmp, path)  # atomic: the lock appears with its content or not
+                    held = True
+                    break
+                except FileExistsError:
+                    try:
+                        owner = json.loads(path.read_text())
+                    except (OSError, ValueError):
+                        owner = {}  # removed meanwhile, or not ours: stale
+                    if attempt == 0 and not _alive(owner):
+                        path.unlink(missing_ok=True)
+                        continue
+                    raise InputError(
+                        f"{path.parent}: in use by {owner.get('command', 'another command')} "
+                        f"(pid {owner.get('pid', '?')} on {owner.get('host', '?')}, since "
+                        f"{owner.get('since', '?')}); wait for it to end, or delete {path} if "
+                        "that process is gone") from None
+                finally:
+                    tmp.unlink(missing_ok=True)
         yield
     finally:
-        try:
-            if json.loads(path.read_text()).get("pid") == os.getpid():
-                path.unlink()
-        except (OSError, ValueError):
-            pass
-        for d in created:
-            try:
-                d.rmdir()  # only if empty: nothing was written
-            except OSError:
-                break
+        if held:
+            with uninterrupted():
+                try:
+                    if json.loads(path.read_text()).get("pid") == os.getpid():
+                        path.unlink()
+                except (OSError, ValueError):
+                    pass
+                for d in created:
+                    try:
+                        d.rmdir()  # only if empty: nothing was written
+                    except OSError:
+                        break
 
 
 # ---------------------------------------------------------------------------------------------

@@ -164,12 +164,10 @@ class Viewer:
 def _dump(folder: Path, img: np.ndarray, c2w: torch.Tensor, fov: float, aspect: float) -> None:
     import json
 
-    import imageio.v3 as iio
-
-    from shells.errors import atomic_write
+    from shells.errors import atomic_write, write_image
 
     folder.mkdir(parents=True, exist_ok=True)
-    atomic_write(folder / "frame.png", lambda p: iio.imwrite(p, img, extension=".png"))
+    atomic_write(folder / "frame.png", lambda p: write_image(p, img, extension=".png"))
     atomic_write(folder / "camera.json", lambda p: p.write_text(json.dumps(
         {"c2w": c2w.tolist(), "fov": fov, "aspect": aspect})))
 

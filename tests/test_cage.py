@@ -370,7 +370,6 @@ def test_motion_file_is_checked(tmp_path):
 # Commands
 # --------------------------------------------------------------------------------------------
 
-@pytest.mark.slow
 def test_cage_and_animate_commands(tmp_path, capsys):
     import imageio.v2 as iio2
     import imageio.v3 as iio

@@ -18,6 +18,7 @@ import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
 import zlib
 from pathlib import Path
@@ -521,6 +522,73 @@ def _interrupt(cmd: list[str], delay: float) -> subprocess.CompletedProcess:
     if proc.returncode == 130:
         assert "interrupted" in err.strip().splitlines()[-1], err
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
+def _signal_from_another_thread(signum: int = signal.SIGINT) -> None:
+    """As a Ctrl-C comes: to the process, taken by whichever thread (torch's, Dr.Jit's)."""
+    t = threading.Thread(target=os.kill, args=(os.getpid(), signum))
+    t.start()
+    t.join()
+    time.sleep(0.05)
+
+
+def test_a_signal_after_the_final_commit_ends_the_command_as_done(tmp_path):
+    """A Ctrl-C that comes once a command's outputs are committed must not report the command
+    as interrupted (status 130 promises unchanged outputs); elsewhere it interrupts at once."""
+    from shells.errors import commit_files, final_commit, late_signal
+
+    stage, out = tmp_path / "stage", tmp_path / "out"
+    stage.mkdir()
+    (stage / "a.txt").write_text("new")
+    with final_commit():
+        commit_files(stage, out)
+        _signal_from_another_thread()  # held back until the block ends, then taken off
+    assert late_signal() == signal.SIGINT
+    assert (out / "a.txt").read_text() == "new"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    (stage / "b.txt").write_text("new")
+    with pytest.raises(KeyboardInterrupt):  # not a final commit: the signal raises after it
+        commit_files(stage, out)
+        _signal_from_another_thread()
+    assert (out / "b.txt").is_file()
+    with final_commit():
+        pass
+    assert late_signal() is None
+
+
+def test_a_ctrl_c_inside_a_traced_drjit_loop_ends_in_one_line(capsys):
+    """Dr.Jit re-raises an exception of a traced loop body as a RuntimeError whose cause is the
+    KeyboardInterrupt: the command still ends as interrupted (130, one line)."""
+    import argparse
+
+    import drjit as dr
+    from drjit.llvm import UInt32
+
+    def body(i):
+        raise KeyboardInterrupt  # as the signal handler raises it, mid-trace
+
+    def fn(args):
+        dr.while_loop((UInt32(0, 1),), lambda i: i < 3, body)
+
+    assert cli._run(fn, argparse.ArgumentParser(prog="shells-x"), []) == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["shells-x: interrupted"]
+
+
+def test_a_signal_while_the_lock_is_taken_leaves_no_lock(tmp_path, monkeypatch):
+    import shells.run as run_module
+
+    real = os.link
+
+    def link(a, b):
+        real(a, b)
+        _signal_from_another_thread()  # the lock is there: it must be given up again
+
+    monkeypatch.setattr(run_module.os, "link", link)
+    body = []
+    with pytest.raises(KeyboardInterrupt):  # raised once it is held, inside its try
+        with run_module.lock(tmp_path / ".lock", "test"):
+            body.append(1)
+    assert body == [] and not (tmp_path / ".lock").exists()
 
 
 @pytest.fixture(scope="module")

@@ -10,11 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 from scipy import ndimage
 
-from shells.errors import atomic_write
+from shells.errors import atomic_write, write_image
 from shells.levelset.grid import check_aabb
 
 _DIVERGING = np.array([[0.23, 0.30, 0.75], [1.0, 1.0, 1.0], [0.71, 0.02, 0.15]])
@@ -70,5 +69,5 @@ def slice_figure(f: np.ndarray, s: np.ndarray,  # [X, Y, Z] input SDF and kernel
         panels.append(panel)
     gap = np.ones((panels[0].shape[0], max(4, scale), 3))
     img = (np.concatenate([panels[0], gap, panels[1]], axis=1) * 255).round().astype(np.uint8)
-    atomic_write(path, lambda p: iio.imwrite(p, img, extension=".png"))
+    atomic_write(path, lambda p: write_image(p, img, extension=".png"))
     return img

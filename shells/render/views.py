@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from shells import distributed
 from shells.config import RenderConfig
+from shells.errors import write_image
 from shells.metrics import psnr, ssim
 from shells.render.frame import rays_per_batch, render_image
 from shells.render.refine import render_refined, tile_rows
@@ -102,7 +103,7 @@ def render_frames(field: Any, cameras: Any, images: torch.Tensor | None, cfg: Re
                                                 background)
         if j > 0:  # the first frame of a process compiles the kernels
             warm.append(seconds)
-        iio.imwrite(out / f"r_{i:03d}.png", to_png(img))
+        write_image(out / f"r_{i:03d}.png", to_png(img))
         spps[i] = spp.to(torch.int16) if int(spp.max()) < 2 ** 15 else spp  # kept for the heatmaps
         views.append({"view": i, "spp_sum": float(spp.double().sum()),
                       "covered": counts["covered"], "evaluated": counts["evaluated"],
@@ -124,7 +125,7 @@ def summarise(views: list[dict[str, Any]], warm: list[float], spps: dict[int, to
     views = sorted(views, key=lambda v: v["view"])
     vmax = max(v["spp_max"] for v in views)
     for i, s in spps.items():
-        iio.imwrite(out / f"spp_{i:03d}.png", heatmap(s, vmax))
+        write_image(out / f"spp_{i:03d}.png", heatmap(s, vmax))
     psnrs = [v["psnr"] for v in views if v["psnr"] is not None]
     ssims = [v["ssim"] for v in views if v["ssim"] is not None]
     covered = sum(v["covered"] for v in views)
