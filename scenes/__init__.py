@@ -1,7 +1,7 @@
 """Toy data sets rendered with Mitsuba 3 in the Blender/NeRF-synthetic format.
 
 ``make_scene(name, out, res=64, views=32, test_views=8, spp=64, seed=0)`` writes one of
-``SCENES`` (`sphere`, `fuzzy-sphere`, `core-fuzz`, `thin-parts`); see ``scenes/dataset.py`` for the format and
+``SCENES`` (`sphere`, `fuzzy-sphere`, `core-fuzz`, `thin-parts`, `unbounded`); see ``scenes/dataset.py`` for the format and
 ``scenes/cameras.py`` for the camera conventions.
 """
 

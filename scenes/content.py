@@ -19,6 +19,7 @@ SPHERE_RADIUS = 0.5  # `sphere`: opaque sphere radius
 FUZZ_RADIUS = 0.6  # fuzzy scenes: radius of the bounding sphere of the medium
 CORE_RADIUS = 0.3  # `core-fuzz`: opaque core radius
 GRID_RES = 64  # voxels per axis of the density grid over [-FUZZ_RADIUS, FUZZ_RADIUS]^3
+ROOM_RADIUS = 10.0  # `unbounded`: the textured room sphere around the content
 
 
 @dataclass
@@ -34,6 +35,7 @@ class SceneSpec:
     density: Any = None  # [G, G, G] float32 grid (index [z, y, x]) of the medium, or None
     sigma_scale: float = 0.0  # extinction = sigma_scale * density (1 / world units)
     medium_radius: float = 0.0  # the medium lives inside this sphere at the origin
+    room_radius: float = 0.0  # > 0: a self-lit room sphere of this radius closes every ray
 
 
 def lights() -> dict[str, Any]:
@@ -145,6 +147,26 @@ def thin_parts(rng: np.random.Generator) -> SceneSpec:
     return SceneSpec(content, {"name": "thin-parts", "sphere": [list(c), r],
                                "rod": [list(v) for v in rod], "plate": [list(v) for v in plate]},
                      spheres=[(c, r)], boxes=[rod, plate])
+
+
+def unbounded(rng: np.random.Generator) -> SceneSpec:
+    """`unbounded`: the `sphere` inside a textured, self-lit room sphere of radius
+    ROOM_RADIUS (issue 14's toy unbounded scene). Every ray ends on something (alpha 1
+    everywhere), and the room lies far outside the region the cameras look at: a bounded field
+    cannot hold it, a contracted one can. The room's surface has a null BSDF, so the
+    directional lights still reach the ball through it."""
+    import mitsuba as mi
+
+    ball = _textured_ball(rng, SPHERE_RADIUS)
+    wall = (0.6 * _checker_texture(rng, n_u=24, n_v=12)).astype(np.float32)
+    room = {"type": "sphere", "radius": ROOM_RADIUS, "flip_normals": True,
+            "bsdf": {"type": "null"},
+            "emitter": {"type": "area", "radiance": {"type": "bitmap", "bitmap": mi.Bitmap(wall),
+                                                     "filter_type": "bilinear", "raw": True}}}
+    return SceneSpec({"ball": ball, "room": room, **lights()},
+                     {"name": "unbounded", "center": [0.0, 0.0, 0.0], "radius": SPHERE_RADIUS,
+                      "room_radius": ROOM_RADIUS},
+                     spheres=[((0.0, 0.0, 0.0), SPHERE_RADIUS)], room_radius=ROOM_RADIUS)
 
 
 def fuzzy_sphere(rng: np.random.Generator) -> SceneSpec:

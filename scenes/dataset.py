@@ -33,6 +33,7 @@ SCENES: dict[str, Builder] = {
     "fuzzy-sphere": content.fuzzy_sphere,
     "core-fuzz": content.core_fuzz,
     "thin-parts": content.thin_parts,
+    "unbounded": content.unbounded,
 }
 CAMERA_ANGLE_X = math.radians(40.0)  # horizontal field of view of every view
 AABB = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]  # scene box written to the JSON

@@ -96,6 +96,8 @@ def opacity(spec: SceneSpec,
     n_sub is odd by default so that a coverage of exactly one half cannot occur: alpha > 0.5
     then agrees with "the pixel-centre ray hits" along a straight-ish rim.
     """
+    if spec.room_radius > 0:  # the room closes every ray
+        return np.ones((res, res))
     grid = (np.arange(n_sub) + 0.5) / n_sub
     offsets = np.stack(np.meshgrid(grid, grid, indexing="ij"), -1).reshape(-1, 2)  # [K, 2]
     o, d = pixel_rays_gl(c2w_gl, camera_angle_x, res, res, offsets)  # [H, W, K, 3]

@@ -18,7 +18,7 @@ import pytest
 
 from scenes import SCENES, make_scene
 from scenes import dataset as ds
-from scenes.cameras import look_at_gl, sample_poses
+from scenes.cameras import look_at_gl, pixel_rays_gl, sample_poses
 from scenes.content import SceneSpec, lights
 from scenes.opacity import opacity, reference_opacity
 from shells.errors import InputError
@@ -285,7 +285,30 @@ def test_unknown_scene_and_cli_exit_status(tmp_path, capsys):
 
     assert scene_main(["sphere", "--out", str(tmp_path / "x"), "--res", "4"]) == 2
     assert "--res 4" in capsys.readouterr().err
-    assert set(SCENES) == {"sphere", "fuzzy-sphere", "core-fuzz", "thin-parts"}
+    assert set(SCENES) == {"sphere", "fuzzy-sphere", "core-fuzz", "thin-parts", "unbounded"}
+
+
+def test_unbounded_scene_closes_every_ray_with_its_room(tmp_path):
+    """Issue 14's toy unbounded scene: opaque everywhere, the ball where the centre rays hit
+    it, and beyond it a textured room far outside the cameras' sphere (not a constant colour).
+    """
+    from scenes.content import ROOM_RADIUS, SPHERE_RADIUS
+
+    rec = make_scene("unbounded", tmp_path, res=32, views=3, test_views=1, spp=16)
+    assert rec["scene"]["room_radius"] == ROOM_RADIUS > 3 * 3.0  # cameras sit at 2.6 .. 3
+    room = []
+    for k, frame in enumerate(rec["frames"]):
+        img = iio.imread(tmp_path / "train" / f"r_{k}.png")
+        assert (img[..., 3] == 255).all()
+        o, d = (x[:, :, 0] for x in pixel_rays_gl(np.asarray(frame["transform_matrix"]),
+                                                  rec["camera_angle_x"], 32, 32))
+        b = np.einsum("hwc,hwc->hw", o, d)
+        hit = b * b - (np.einsum("hwc,hwc->hw", o, o) - SPHERE_RADIUS ** 2) > 0
+        assert hit[16, 16] and not hit[0, 0]
+        room.append(img[~hit][:, :3])
+    room = np.concatenate(room).astype(float)
+    assert room.std(0).min() > 20  # a texture, not a flat background
+    assert room.mean() > 40  # self-lit: visible without the lights
 
 
 def test_cli_default_sphere_under_a_minute(tmp_path):
