@@ -4,11 +4,19 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
 import pytest
+
+# The Ctrl-C tests need SIGINT to be deliverable, to this process and to the commands it starts
+# (which inherit the disposition). A job started with `&` from a non-interactive shell (nohup,
+# CI runners) inherits SIGINT *ignored* (POSIX); restore Python's own handler, as an
+# interactive terminal would have it.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 SHARED_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
