@@ -83,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{size}x{size}: band {1e3 * b:7.1f} ms | deformed: pose {1e3 * p:6.1f} ms + "
               f"render {1e3 * r:7.1f} ms | ratio {r / b:4.2f} (render) {(p + r) / b:4.2f} "
               f"(with pose) | spp {spp_b:.2f} / {spp_d:.2f}", flush=True)
-    doc = {"run": str(run.root), "shells": args.shells, "motion": args.motion, "view": args.view, "zoom": args.zoom,
+    doc = {"run": str(run.root), "shells": args.shells, "motion": args.motion,
+           "view": args.view, "zoom": args.zoom,
            "cage_vertices": int(len(cage.vertices)), "cage_tetrahedra": int(len(cage.tets)),
            "rows": rows,
            "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores, {variant}"}

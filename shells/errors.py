@@ -134,27 +134,25 @@ def commit_files(stage: Path, out: Path, last: str | None = None) -> None:
     """Move every file of the staging folder ``stage`` into ``out`` (created), ``last`` (a file
     name that marks a complete output) at the end, without being interrupted between them
     (nor, in a `final_commit` block, after them)."""
-    keep = _main() and _final["on"]
-    held = _Held() if _main() else None
-    try:
+    def move() -> None:
         out.mkdir(parents=True, exist_ok=True)
         names = sorted(p.name for p in stage.iterdir())
         for n in [n for n in names if n != last] + [n for n in names if n == last]:
             os.replace(stage / n, out / n)
+
+    if not (_final["on"] and _main()) or _final["held"] is not None:
+        with uninterrupted():  # (in a final block after its first commit: held already)
+            move()
+        return
+    held = _Held()
+    try:
+        move()
     except BaseException:
-        keep = False
+        came = held.restore()
+        if came is not None:
+            signal.raise_signal(came)
         raise
-    finally:
-        if held is not None:
-            if keep and _final["held"] is None:
-                _final["held"] = held  # held back until final_commit ends
-            elif keep:  # a second commit in the block: the first one's holder stays
-                held.restore()
-                _final["held"].came += held.came
-            else:
-                came = held.restore()
-                if came is not None:
-                    signal.raise_signal(came)
+    _final["held"] = held  # held back until final_commit ends
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
