@@ -164,6 +164,7 @@ def make_scene(name: str, out: str | Path, res: int = 64, views: int = 32, test_
             _write_png(out / split / f"r_{k}.png", to_rgba8(colour, alpha))
             frames.append({"file_path": f"{split}/r_{k}", "transform_matrix": c2w.tolist()})
         records[split] = {"camera_angle_x": CAMERA_ANGLE_X, "aabb": AABB, "scene": spec.meta,
+                          **({"unbounded": True} if spec.room_radius > 0 else {}),
                           "frames": frames}
         write_json(out / f"transforms_{split}.json", records[split])
     return records["train"]

@@ -250,6 +250,12 @@ def train_parser() -> argparse.ArgumentParser:
                         "sized from the images), 'paper' (paper sizes, GPU); 'auto' (default) "
                         "picks paper on CUDA, else toy for images up to 96 px a side and "
                         "object above")
+    p.add_argument("--scene", choices=["auto", "bounded", "unbounded"], default="auto",
+                   help="'unbounded': a capture with a room or landscape around the object; the "
+                        "field lives in contracted space (Mip-NeRF 360) and its shells reach "
+                        "the far background; 'bounded': an object in the data set's box; "
+                        "'auto' (default): unbounded when the data set says so (\"unbounded\": "
+                        "true, or Instant-NGP aabb_scale > 1)")
     p.add_argument("--device", choices=["cpu", "cuda"], default=None,
                    help="torch device (default: cuda if available)")
     p.add_argument("--downscale", type=int, default=1, help="downscale images by this factor")
@@ -260,7 +266,7 @@ def train_parser() -> argparse.ArgumentParser:
 def _train(args: argparse.Namespace) -> int:
     from shells.config import Config, load_config
     from shells.device import torch_device
-    from shells.training import preset_config, train
+    from shells.training import preset_config, scene_similarity, train, unbounded_settings
 
     device = torch_device(args.device)
     if args.data is None and not args.resume:
@@ -270,9 +276,12 @@ def _train(args: argparse.Namespace) -> int:
     if args.iters is not None:  # checked before the data set is read for the preset
         Config().update({"train": {"iters": args.iters}}, "--iters")
     # on --resume the run's own config is used; the preset matters for new runs only
+    sim = None if args.resume else scene_similarity(args.data, args.scene)
     base = Config() if args.resume else preset_config(args.preset, args.data, args.downscale,
-                                                      device)[0]
+                                                      device, sim)[0]
     cfg = load_config(args.config, base)
+    if sim is not None:
+        unbounded_settings(cfg, sim)
     with _locked_run(args.out, "shells-train"):
         summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
                         resume=args.resume, iters=args.iters)

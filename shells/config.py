@@ -51,6 +51,14 @@ class FieldConfig:
     min_kernel: float = 1e-4  # lower clamp on s (numerical safety)
     max_kernel: float = 1.0  # upper clamp on s
     global_kernel: bool = False  # one learned s for the whole scene (ablation, paper Table 4)
+    # unbounded captures (paper §4.7; shells/fields/contraction.py): the field lives in
+    # contracted space, x -> centre + radius c((x - centre) / radius), over the box
+    # centre +- 2 radius; the identity inside the ball of interest (so world units there)
+    unbounded: bool = False  # set by shells-train --scene unbounded (or from the data set)
+    centre: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the ball of interest (world)
+    radius: float = 1.0  # its radius (world units)
+    far_radius: float = 1.95  # contracted radius (in radius units, in (1, 2)) beyond which
+    # everything is solid: the far background every ray ends on (1.95: 20 radii away)
 
 
 @dataclass
@@ -308,6 +316,15 @@ _RULES = [_rule(k, *r) for k, r in [
                               "must be >= field.base_resolution")),
     ("field.sh_degree", ((lambda v: 1 <= v <= 4), "supported degrees are 1..4 (sh_encode)")),
     ("field.init_radius", _positive()),
+    ("field.radius", _positive()),
+    ("field.far_radius", ((lambda v: 1.0 < v < 2.0), "must be in (1, 2) (contracted space "
+                          "ends at 2)")),
+    ("field.centre", ((lambda v: isinstance(v, tuple) and len(v) == 3
+                       and all(isinstance(c, (int, float)) and math.isfinite(c) for c in v)),
+                      "expected three finite numbers (x, y, z)")),
+    ("train.sampler", (lambda v, c: not (c.field.unbounded and v == "occupancy"),
+                       "the occupancy sampler is for bounded scenes; an unbounded field "
+                       "samples evenly in contracted space (train.sampler 'box')")),
     ("field.min_kernel", _positive()),
     ("field.init_kernel", (lambda v, c: c.field.min_kernel < v < c.field.max_kernel,
                            "need field.min_kernel < init_kernel < max_kernel")),

@@ -387,6 +387,32 @@ def read_frames(root: str | Path, split: str = "train", skip_missing: bool | Non
                   has_alpha=_image_shape(paths[0])[2] in (2, 4))
 
 
+def says_unbounded(frames: Frames) -> bool:
+    """The data set describes an unbounded capture: ``"unbounded": true`` in its transforms
+    file, or Instant-NGP's ``aabb_scale`` > 1 (its convention for content beyond the unit cube:
+    a room or landscape behind the object)."""
+    if bool(frames.meta.get("unbounded", False)):
+        return True
+    try:
+        return frames.format == "ngp" and float(frames.meta.get("aabb_scale", 1)) > 1
+    except (TypeError, ValueError):
+        return False
+
+
+def region_of_interest(frames: Frames) -> tuple[tuple[float, float, float], float]:
+    """Centre and radius of the ball an unbounded scene's field keeps at full resolution: the
+    box of the object (Instant-NGP: its unit cube, before aabb_scale; Blender: the aabb), centre
+    and half its largest side."""
+    if frames.format == "ngp":
+        lo, hi = (np.asarray(v) for v in _ngp_aabb({**frames.meta, "aabb_scale": 1},
+                                                     frames.root / "transforms.json"))
+    else:
+        box = frames.aabb.double().numpy()
+        lo, hi = box[0], box[1]
+    c = 0.5 * (lo + hi)
+    return (float(c[0]), float(c[1]), float(c[2])), float(0.5 * (hi - lo).max())
+
+
 # --------------------------------------------------------------------------------------------
 # Pixels
 # --------------------------------------------------------------------------------------------

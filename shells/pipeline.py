@@ -68,8 +68,8 @@ def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
         cfg.update({"shell": {"resolution": resolution}}, "--resolution")
     sc = cfg.shell
 
-    def fn(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        g = field.geometry(x)
+    def fn(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # field-space grid points
+        g = field.geometry_field(x)
         return g["sdf"], g["s"]
 
     t0 = time.perf_counter()
@@ -80,13 +80,37 @@ def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
     f, s, _, exact = sample_grid_banded(fn, field.aabb.cpu().numpy(), sc.resolution, band,
                                         sc.chunk)
     t_grid = time.perf_counter() - t0
-    shells = extract_shells(f, s, field.aabb.cpu().numpy(), sc, fixed_width=fixed_width)
+    sim = field.similarity
+    shells = extract_shells(f, s, field.aabb.cpu().numpy(), sc, fixed_width=fixed_width,
+                            roi=None if sim is None else (sim.centre, sim.radius))
+    if field.similarity is not None:  # extracted in field space: the meshes back to the world
+        _unbounded_to_world(shells, field)
     shells.stats["timings_s"]["sample_grid"] = t_grid
     shells.stats["grid_exact_fraction"] = exact
     shells.stats["timings_s"]["total"] = time.perf_counter() - t0
     shells.stats["source"] = source  # which run and stage-1 step (shells.run.check_shells)
     write_shells(shells, run.shells)
     return shells.stats
+
+
+def _unbounded_to_world(shells: Any, field: Any) -> None:
+    """The shells of an unbounded field, extracted in field space, mapped to the world
+    (`shells.levelset.unbounded.to_world`); the report goes into the stats."""
+    from shells.levelset.unbounded import to_world
+
+    t0 = time.perf_counter()
+    h = float(np.max(shells.stats["spacing"]))
+    report = {}
+    for name in ("outer", "inner"):
+        mesh, report[name] = to_world(getattr(shells, name), field.similarity, h)
+        setattr(shells, name, mesh)
+        shells.stats[f"{name}_triangles"] = int(len(mesh.faces))
+        shells.stats[f"{name}_vertices"] = int(len(mesh.vertices))
+    sim = field.similarity
+    shells.stats["unbounded"] = {"centre": list(sim.centre), "radius": sim.radius,
+                                 "far_radius": field.cfg.far_radius, **report,
+                                 "note": "grids, volumes and band widths are in field space"}
+    shells.stats["timings_s"]["to_world"] = time.perf_counter() - t0
 
 
 @contextlib.contextmanager

@@ -26,8 +26,10 @@ import torch
 
 from shells import distributed
 from shells.config import Config, TrainConfig, object_config, toy_config
-from shells.datasets import Dataset, load_dataset, read_frames
+from shells.datasets import (Dataset, load_dataset, read_frames, region_of_interest,
+                             says_unbounded)
 from shells.errors import InputError, write_json
+from shells.fields.contraction import Similarity
 from shells.fields.network import ShellField
 from shells.loop import Schedule, join, make_optimizer, optimise, psnr_of
 from shells.metrics import psnr
@@ -38,30 +40,72 @@ MAX_DRAWS = 8  # "occupancy" sampler: at most this many rounds of pixels drawn p
 
 
 PRESETS = ("auto", "toy", "object", "paper")
+SCENES = ("auto", "bounded", "unbounded")
 TOY_MAX_SIDE = 96  # "auto" on the CPU: images up to this many pixels a side get the toy preset
 
 
+def scene_similarity(data_dir: str | Path, scene: str = "auto") -> Similarity | None:
+    """``shells-train --scene``: the similarity of an unbounded scene (`region_of_interest`),
+    or None for a bounded one. "auto": unbounded when the data set says so
+    (`says_unbounded`). The training cameras must look at a common region
+    (`Similarity.from_cameras`: a one-line error otherwise, e.g. cameras inside the object)."""
+    if scene not in SCENES:
+        raise InputError(f"--scene {scene}: expected one of {list(SCENES)}")
+    if scene == "bounded":
+        return None
+    frames = read_frames(data_dir, "train")
+    if scene == "auto" and not says_unbounded(frames):
+        return None
+    c2w = frames.cameras.c2w.double().numpy()
+    Similarity.from_cameras(c2w[:, :3, 3], c2w[:, :3, 2],
+                            f"{frames.root}: the training cameras of an unbounded scene")
+    centre, radius = region_of_interest(frames)
+    return Similarity(centre, radius)
+
+
+def unbounded_settings(cfg: Config, sim: Similarity) -> None:
+    """Make ``cfg`` the config of an unbounded scene with similarity ``sim``: the contracted
+    field (`ShellField`, field.unbounded) and stage 1 sampling evenly in contracted space."""
+    cfg.update({"field": {"unbounded": True, "centre": list(sim.centre), "radius": sim.radius},
+                "train": {"sampler": "box"}}, "--scene unbounded")
+
+
 def preset_config(name: str, data_dir: str | Path, downscale: int,
-                  device: torch.device) -> tuple[Config, str]:
+                  device: torch.device, sim: Similarity | None = None) -> tuple[Config, str]:
     """The base config of ``shells-train --preset NAME`` and the preset's resolved name.
 
     "auto": "paper" on CUDA; on the CPU "toy" for images of at most TOY_MAX_SIDE pixels a side
-    (the toy scenes), else "object", sized from the training cameras (`object_config`)."""
+    (the toy scenes), else "object", sized from the training cameras (`object_config`). With
+    ``sim`` (an unbounded scene) the object preset is sized for the field-space box (centre
+    +- 2 radius) and the toy preset's finest level doubles with one more level, so the ball of
+    interest gets the cells the toy box gets."""
     if name not in PRESETS:
         raise InputError(f"--preset {name}: expected one of {list(PRESETS)}")
     if name == "paper" or (name == "auto" and device.type == "cuda"):
         return Config(), "paper"
     if name == "toy":
-        return toy_config(), "toy"
+        return _toy_for(sim), "toy"
     frames = read_frames(data_dir, "train")
     cams = frames.cameras.downscaled(downscale)
     if name == "auto" and max(cams.width, cams.height) <= TOY_MAX_SIDE:
-        return toy_config(), "toy"
+        return _toy_for(sim), "toy"
     box = frames.aabb.double()
+    if sim is not None:
+        c, r = torch.tensor(sim.centre, dtype=torch.float64), 2.0 * sim.radius
+        box = torch.stack([c - r, c + r])
     centre = 0.5 * (box[0] + box[1])
     distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
     focal = float(cams.fx.double().median())
     return object_config(float((box[1] - box[0]).max()), focal, distance), "object"
+
+
+def _toy_for(sim: Similarity | None) -> Config:
+    cfg = toy_config()
+    if sim is not None:
+        f = cfg.field
+        cfg.update({"field": {"max_resolution": 2 * f.max_resolution,
+                              "n_levels": f.n_levels + 1}}, "toy preset, unbounded")
+    return cfg
 
 
 def build_field(cfg: Config, aabb: torch.Tensor, device: torch.device) -> ShellField:
@@ -74,16 +118,21 @@ def build_field(cfg: Config, aabb: torch.Tensor, device: torch.device) -> ShellF
 # ---------------------------------------------------------------------------------------------
 
 def regularisers(field: ShellField,
-                 points: torch.Tensor,  # [M, 3] world points
+                 points: torch.Tensor,  # [M, 3] field-space points (the world if bounded)
                  fd_eps: float,
                  smooth_eps: float,
                  gen: torch.Generator,
                  ) -> dict[str, torch.Tensor]:
-    """Eikonal (Eq. 10), kernel smoothness (Eq. 11) and normal (Eq. 12) terms on `points`."""
+    """Eikonal (Eq. 10), kernel smoothness (Eq. 11) and normal (Eq. 12) terms on `points`.
+
+    All three act in field space: an unbounded field is an SDF of the contracted point z
+    (|grad_z f| = 1), not of the world point, whose metric stretches without bound far away;
+    there the kernel and the level-set grid live too, so the terms keep their meaning (and
+    fd_eps, smooth_eps their units) everywhere."""
     grad = field.sdf_gradient_fd(points, fd_eps)  # [M, 3]
     gnorm = grad.norm(dim=-1)
     eikonal = ((gnorm - 1.0) ** 2).mean()
-    geo = field.geometry(points)
+    geo = field.geometry_field(points)
     target = grad.detach() / gnorm.detach().clamp_min(1e-6)[:, None]
     normal = (geo["normal"] - target).norm(dim=-1).mean()
     noise = torch.randn(points.shape, generator=gen, device=points.device) * smooth_eps
@@ -94,9 +143,9 @@ def regularisers(field: ShellField,
 
 def reg_points(field: ShellField, ray_points: torch.Tensor, n: int,
                gen: torch.Generator) -> torch.Tensor:
-    """Half from the ray samples (where the image loss acts), half uniform in the box (all
-    uniform when there are no ray samples)."""
-    flat = ray_points.detach().reshape(-1, 3)
+    """Field-space points: half from the ray samples (where the image loss acts), half uniform
+    in the field's box (all uniform when there are no ray samples)."""
+    flat = field.to_field(ray_points.detach().reshape(-1, 3))
     n_ray = n // 2 if flat.shape[0] else 0
     pick = torch.randint(0, max(1, flat.shape[0]), (n_ray,), generator=gen, device=flat.device)
     lo, hi = field.aabb[0], field.aabb[1]

@@ -8,6 +8,12 @@ torch grid's flat parameter vector as is; the layout is defined in ``shells.fiel
 is ``shells.fields.neus.neus_alpha`` itself (it dispatches on the array type).
 
 Weights are copied at construction: rebuild the twin after further training.
+
+An unbounded field (``field.similarity``) is evaluated as `ShellField` evaluates it: at
+z = W(x) (the contraction), with the solid far sphere min(f_net, radius (far_radius - |y|)),
+the world slope normal J^T n as ``normal`` (for cos = d . normal) and the unit field-space
+normal into the radiance MLP. `eval_geometry_field` takes field-space points (the occupancy
+grid of an unbounded scene lives there).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ class FieldSample:
 
     sdf: Any  # Float, world units, > 0 outside
     s: Any  # Float, kernel size, world units
-    normal: Any  # Array3f, predicted unit normal
+    normal: Any  # Array3f, predicted unit normal (unbounded: the world slope normal J^T n)
     rgb: Any  # Array3f in (0, 1); None from eval_geometry
 
 
@@ -54,6 +60,10 @@ class DrJitField:
         self.inv_half = [float(v) for v in 2.0 / (aabb[1] - aabb[0])]
         self.log_kmin, self.log_krange = field.log_kmin, field.log_krange
         self.kernel_z0 = field.kernel_z0
+        self.similarity = field.similarity  # None: bounded (field space = world)
+        self.far_radius = float(field.cfg.far_radius)
+        self.dome_logit = float(field.dome_logit)
+        self.aabb = aabb  # field-space box [2, 3]
 
         self.encoding = dr.nn.HashGridEncoding(
             self.Float, 3, n_levels=grid.n_levels, n_features_per_level=grid.n_features,
@@ -80,32 +90,71 @@ class DrJitField:
                 net[f"layers.{i}.bias"] = self.TensorXf(m.bias.detach().float().cpu())
         return dr.nn.pack(net, layout="inference")
 
-    def _geometry(self, x):  # Array3f world -> (xn [3 Floats], raw [2+G+3 Floats])
-        xn = [(x[i] - self.centre[i]) * self.inv_half[i] for i in range(3)]
+    def _raw(self, z):  # Array3f field space -> (xn [3 Floats], raw [2+G+3 Floats])
+        xn = [(z[i] - self.centre[i]) * self.inv_half[i] for i in range(3)]
         p01 = [dr.clip(v * 0.5 + 0.5, 0.0, 1.0) for v in xn]
         feats = list(self.encoding(p01))
         raw = list(self.geo_mlp(dr.nn.CoopVec(*xn, *feats)))
+        if self.similarity is not None:  # the solid far background (ShellField._geo_raw)
+            dome = self._dome(z)
+            on = dome < raw[0]
+            raw[0] = dr.select(on, dome, raw[0])
+            raw[1] = dr.select(on, self.dome_logit, raw[1])
         return xn, raw
+
+    def _unit(self, p):  # Array3f -> (p - centre) / radius
+        c, r = self.similarity.centre, self.similarity.radius
+        return self.Array3f(*[(p[i] - c[i]) / r for i in range(3)])
+
+    def _dome(self, z):
+        return self.similarity.radius * (self.far_radius - dr.norm(self._unit(z)))
+
+    def _to_field(self, x):  # Array3f world -> (z, u = unit-frame x, |u|)
+        u = self._unit(x)
+        r = dr.norm(u)
+        scale = dr.select(r > 1.0, (2.0 - dr.rcp(r)) * dr.rcp(r), 1.0)
+        c, R = self.similarity.centre, self.similarity.radius
+        z = self.Array3f(*[dr.select(r > 1.0, u[i] * scale * R + c[i], x[i]) for i in range(3)])
+        return z, u, r
 
     def _kernel(self, z):
         return dr.exp(self.log_kmin + self.log_krange * _sigmoid(z + self.kernel_z0))
 
-    def eval_geometry(self, x) -> FieldSample:
-        """sdf and s only (no normal, no colour): for shell extraction and full-mode sampling."""
-        _, raw = self._geometry(x)
+    def eval_geometry_field(self, z) -> FieldSample:
+        """sdf and s at field-space points (the world for a bounded field)."""
+        _, raw = self._raw(z)
         return FieldSample(sdf=raw[0], s=self._kernel(raw[1]), normal=None, rgb=None)
+
+    def eval_geometry(self, x) -> FieldSample:
+        """sdf and s only (no normal, no colour) at world points."""
+        z = x if self.similarity is None else self._to_field(x)[0]
+        return self.eval_geometry_field(z)
 
     def eval(self, x, d) -> FieldSample:
         """x: Point3f world positions, d: Vector3f unit view directions (same width or 1)."""
-        xn, raw = self._geometry(x)
+        if self.similarity is None:
+            z = x
+        else:
+            z, u, r = self._to_field(x)
+        xn, raw = self._raw(z)
         G = self.geo_dim
         feat = raw[2:2 + G]
         n = self.Array3f(*raw[2 + G:])
         n = n * dr.rcp(dr.maximum(dr.norm(n), NORMAL_EPS))
+        slope = n
+        if self.similarity is not None:
+            y = self._unit(z)
+            on_dome = raw[0] == self._dome(z)
+            n = dr.select(on_dome, -y * dr.rcp(dr.maximum(dr.norm(y), 1e-12)), n)
+            rr = dr.maximum(r, 1.0)
+            uh = u * dr.rcp(rr)
+            a = (2.0 - dr.rcp(rr)) * dr.rcp(rr)
+            b = dr.rcp(rr * rr)
+            slope = dr.select(r > 1.0, a * n + (b - a) * dr.dot(uh, n) * uh, n)
         sh = dr.sh_eval(self.Array3f(d), self.sh_order)
         out = list(self.rad_mlp(dr.nn.CoopVec(*sh, *feat, n.x, n.y, n.z, *xn)))
         rgb = self.Array3f(*[_sigmoid(v) for v in out])
-        return FieldSample(sdf=raw[0], s=self._kernel(raw[1]), normal=n, rgb=rgb)
+        return FieldSample(sdf=raw[0], s=self._kernel(raw[1]), normal=slope, rgb=rgb)
 
     def eval_torch(self, x: torch.Tensor, d: torch.Tensor | None = None
                    ) -> dict[str, torch.Tensor]:

@@ -6,7 +6,19 @@
     radiance MLP  [SH(d) (deg^2), feat (G), n (3), x_n (3)] -> H -> H -> 3, sigmoid
 
 f is in world units (> 0 outside); n = n_raw / |n_raw| is the *predicted* normal (trained
-towards grad f / |grad f| by the normal loss). Activations are ReLU: ``dr.nn`` has ReLU but no
+towards grad f / |grad f| by the normal loss).
+
+Unbounded captures (``cfg.unbounded``, paper §4.7): the field lives in *field space*, the
+contracted copy of the world z = W(x) = centre + radius c((x - centre) / radius)
+(`shells.fields.contraction`), over the box centre +- 2 radius; W is the identity inside the
+ball of interest, so f and s keep world units there. Beyond ``cfg.far_radius`` (contracted,
+in radius units) everything is solid: f = min(f_net, radius (far_radius - |y|)) with
+y = (z - centre) / radius, the far background that closes every ray. f is an SDF of z (the
+Eikonal term acts in field space); along a world ray its slope is d . J^T grad_z f, so
+`geometry` reports the *slope normal* J^T n (J = dW/dx, symmetric; |J^T n| <= 1) as
+``normal``, which every renderer's cos = d . normal then gets right, and the unit field-space
+normal as ``n_unit`` (what the radiance MLP sees). For a bounded field the two are the same and
+field space is the world. Activations are ReLU: ``dr.nn`` has ReLU but no
 softplus, and the Dr.Jit twin must evaluate the same function. The soft clamp keeps s in
 (s_min, s_max) with non-zero gradient everywhere; z0 makes s = init_kernel when z_s = 0.
 
@@ -28,10 +40,12 @@ from torch import nn
 
 from shells.config import FieldConfig
 from shells.errors import InputError
+from shells.fields.contraction import Similarity, contract
 from shells.fields.encoding import sh_dim, sh_encode
 from shells.fields.hashgrid import HashGrid, per_level_scale
 
 NORMAL_EPS = 1e-12  # n = n_raw / max(|n_raw|, eps)
+DOME_KERNEL = 0.002  # kernel size on the far sphere of an unbounded field, in radius units
 
 
 def fibonacci_sphere(n: int) -> torch.Tensor:  # [n, 3] unit vectors, near-uniform
@@ -53,6 +67,12 @@ class ShellField(nn.Module):
             raise InputError(f"ShellField: aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] "
                              f"with max > min, got {aabb.tolist()}")
         self.cfg = cfg
+        self.similarity = (Similarity(tuple(float(c) for c in cfg.centre), float(cfg.radius))
+                           if cfg.unbounded else None)
+        if self.similarity is not None:
+            # field space: the contracted ball of radius 2 around the centre, whatever was given
+            c, r = torch.tensor(cfg.centre, dtype=torch.float32), 2.0 * float(cfg.radius)
+            aabb = torch.stack([c - r, c + r])
         self.register_buffer("aabb", aabb.clone())
         L, Fl = cfg.n_levels, cfg.n_features_per_level
         self.grid = HashGrid(L, Fl, 2 ** cfg.log2_hashmap_size, cfg.base_resolution,
@@ -72,6 +92,11 @@ class ShellField(nn.Module):
         t = (math.log(cfg.init_kernel) - self.log_kmin) / self.log_krange
         self.kernel_z0 = math.log(t / (1.0 - t))  # logit: sigmoid(z0) = t
         self.geometric_init()
+        # where the far sphere is the surface its kernel is sharp, DOME_KERNEL radii: a ray
+        # that reaches it is absorbed well before its samples end (shells.render.warp)
+        t = (math.log(min(max(DOME_KERNEL * cfg.radius, 1.01 * cfg.min_kernel),
+                          0.99 * cfg.max_kernel)) - self.log_kmin) / self.log_krange
+        self.dome_logit = math.log(t / (1.0 - t)) - self.kernel_z0
         # coarse-to-fine training (Neuralangelo): hash levels >= active_levels read as zero;
         # None = all levels (inference always uses all)
         self.active_levels: int | None = None
@@ -98,7 +123,7 @@ class ShellField(nn.Module):
         last.bias[1] = 0.0
 
     # -- evaluation ----------------------------------------------------------------------------
-    def normalize(self, x: torch.Tensor  # [N, 3] world
+    def normalize(self, x: torch.Tensor  # [N, 3] field space
                   ) -> torch.Tensor:  # [N, 3] box-normalised, [-1, 1]^3 inside the box
         centre = 0.5 * (self.aabb[0] + self.aabb[1])
         inv_half = 2.0 / (self.aabb[1] - self.aabb[0])
@@ -108,30 +133,78 @@ class ShellField(nn.Module):
         """s = exp(log s_min + (log s_max - log s_min) sigmoid(z + z0)): a soft clamp."""
         return torch.exp(self.log_kmin + self.log_krange * torch.sigmoid(z + self.kernel_z0))
 
-    def _geo_raw(self, x: torch.Tensor  # [N, 3] world
+    def _geo_raw(self, z: torch.Tensor  # [N, 3] field space (the world for bounded fields)
                  ) -> tuple[torch.Tensor, torch.Tensor]:  # x_n [N, 3], raw outputs [N, 2+G+3]
-        if x.ndim != 2 or x.shape[1] != 3:
-            raise InputError(f"ShellField: points must be [N, 3], got {tuple(x.shape)}")
-        xn = self.normalize(x)
+        if z.ndim != 2 or z.shape[1] != 3:
+            raise InputError(f"ShellField: points must be [N, 3], got {tuple(z.shape)}")
+        xn = self.normalize(z)
         feats = self.grid(torch.clamp(xn * 0.5 + 0.5, 0.0, 1.0))
         L, Fl = self.cfg.n_levels, self.cfg.n_features_per_level
         if self.active_levels is not None and self.active_levels < L:
-            mask = (torch.arange(L * Fl, device=x.device) < self.active_levels * Fl)
+            mask = (torch.arange(L * Fl, device=z.device) < self.active_levels * Fl)
             feats = feats * mask.to(feats.dtype)
-        return xn, self.geo_mlp(torch.cat([xn, feats], dim=1))
+        raw = self.geo_mlp(torch.cat([xn, feats], dim=1))
+        if self.similarity is not None:  # the solid far background: f = min(f_net, dome)
+            dome = self._dome(z)
+            on = dome < raw[:, 0]
+            f = torch.where(on, dome, raw[:, 0])
+            k = torch.where(on, torch.full_like(dome, self.dome_logit), raw[:, 1])
+            raw = torch.cat([f[:, None], k[:, None], raw[:, 2:]], dim=1)
+        return xn, raw
+
+    def _dome(self, z: torch.Tensor) -> torch.Tensor:  # [N, 3] field space -> [N]
+        """radius (far_radius - |y|), y = (z - centre) / radius: > 0 inside the far sphere."""
+        y = self.similarity.to_unit(z)
+        return self.similarity.radius * (self.cfg.far_radius - torch.linalg.vector_norm(y, dim=-1))
+
+    def to_field(self, x: torch.Tensor) -> torch.Tensor:  # [N, 3] world -> field space
+        """W(x) = centre + radius c((x - centre) / radius); the identity for bounded fields."""
+        if self.similarity is None:
+            return x
+        u = self.similarity.to_unit(x)
+        far = torch.linalg.vector_norm(u, dim=-1, keepdim=True) > 1.0
+        return torch.where(far, self.similarity.to_world(contract(u)), x)  # x itself inside
+
+    def geometry_field(self, z: torch.Tensor  # [N, 3] field space
+                       ) -> dict[str, torch.Tensor]:
+        """sdf [N], s [N], feat [N, G], normal [N, 3] (unit, field space), xn [N, 3]."""
+        xn, raw = self._geo_raw(z)
+        G = self.cfg.geo_feature_dim
+        normal = F.normalize(raw[:, 2 + G:], dim=1, eps=NORMAL_EPS)
+        if self.similarity is not None:  # where the far sphere is the surface, its normal
+            y = self.similarity.to_unit(z)
+            inward = -y / torch.linalg.vector_norm(y, dim=-1, keepdim=True).clamp_min(1e-12)
+            on_dome = (raw[:, 0] == self._dome(z))[:, None]
+            normal = torch.where(on_dome, inward, normal)
+        return dict(sdf=raw[:, 0], s=self.kernel_from_logit(raw[:, 1]), feat=raw[:, 2:2 + G],
+                    normal=normal, xn=xn)
 
     def geometry(self, x: torch.Tensor  # [N, 3] world
                  ) -> dict[str, torch.Tensor]:
-        """sdf [N], s [N], feat [N, G], normal [N, 3] (unit), xn [N, 3] (box-normalised x)."""
-        xn, raw = self._geo_raw(x)
-        G = self.cfg.geo_feature_dim
-        return dict(sdf=raw[:, 0], s=self.kernel_from_logit(raw[:, 1]), feat=raw[:, 2:2 + G],
-                    normal=F.normalize(raw[:, 2 + G:], dim=1, eps=NORMAL_EPS), xn=xn)
+        """`geometry_field` at W(x), with ``normal`` the world slope normal J^T n and
+        ``n_unit`` the unit field-space normal (the same tensor for a bounded field)."""
+        if self.similarity is None:
+            geo = self.geometry_field(x)
+            geo["n_unit"] = geo["normal"]
+            return geo
+        geo = self.geometry_field(self.to_field(x))
+        n = geo["normal"]
+        geo["n_unit"] = n
+        u = self.similarity.to_unit(x)
+        r = torch.linalg.vector_norm(u, dim=-1, keepdim=True)
+        far = r > 1.0
+        rr = r.clamp_min(1.0)
+        uh = u / rr
+        a = (2.0 - 1.0 / rr) / rr  # tangential stretch of the contraction
+        b = 1.0 / rr ** 2  # its radial derivative
+        jn = a * n + (b - a) * (uh * n).sum(-1, keepdim=True) * uh  # J^T n, J symmetric
+        geo["normal"] = torch.where(far, jn, n)
+        return geo
 
     def radiance(self, d: torch.Tensor,  # [N, 3] unit view directions
                  geo: dict[str, torch.Tensor]) -> torch.Tensor:  # [N, 3] in (0, 1)
         sh = sh_encode(d, self.cfg.sh_degree)
-        h = torch.cat([sh, geo["feat"], geo["normal"], geo["xn"]], dim=1)
+        h = torch.cat([sh, geo["feat"], geo.get("n_unit", geo["normal"]), geo["xn"]], dim=1)
         return torch.sigmoid(self.rad_mlp(h))
 
     def forward(self, x: torch.Tensor,  # [N, 3] world
@@ -142,15 +215,15 @@ class ShellField(nn.Module):
         geo["rgb"] = self.radiance(d, geo)
         return geo
 
-    def sdf(self, x: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [N]
-        return self._geo_raw(x)[1][:, 0]
+    def sdf(self, z: torch.Tensor) -> torch.Tensor:  # [N, 3] field space -> [N]
+        return self._geo_raw(z)[1][:, 0]
 
-    def kernel(self, x: torch.Tensor) -> torch.Tensor:  # [N, 3] -> s [N]
-        return self.kernel_from_logit(self._geo_raw(x)[1][:, 1])
+    def kernel(self, z: torch.Tensor) -> torch.Tensor:  # [N, 3] field space -> s [N]
+        return self.kernel_from_logit(self._geo_raw(z)[1][:, 1])
 
-    def sdf_gradient_fd(self, x: torch.Tensor,  # [N, 3] world
+    def sdf_gradient_fd(self, x: torch.Tensor,  # [N, 3] field space
                         eps: float) -> torch.Tensor:  # [N, 3]
-        """Central differences (f(x + eps e_i) - f(x - eps e_i)) / (2 eps), one batched call."""
+        """grad_z f by central differences (f(x + eps e_i) - f(x - eps e_i)) / (2 eps), one batched call."""
         offs = torch.eye(3, dtype=x.dtype, device=x.device) * eps  # [3, 3]
         pts = torch.cat([x[:, None, :] + offs, x[:, None, :] - offs], dim=1)  # [N, 6, 3]
         f = self.sdf(pts.reshape(-1, 3)).view(-1, 6)

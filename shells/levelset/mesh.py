@@ -50,9 +50,14 @@ def marching_cubes(f: np.ndarray,  # [X, Y, Z] SDF samples at the grid points, f
     return mesh
 
 
-def clean_mesh(mesh: trimesh.Trimesh, min_component_fraction: float = 0.0) -> trimesh.Trimesh:
+def clean_mesh(mesh: trimesh.Trimesh, min_component_fraction: float = 0.0,
+               roi: tuple[tuple[float, float, float], float] | None = None) -> trimesh.Trimesh:
     """Merge duplicate vertices, drop components with fewer than ``min_component_fraction`` of
     all faces; keep the outward orientation (volume > 0).
+
+    ``roi`` (centre, radius): count only the faces in that ball for the fraction (an unbounded
+    scene's shells: the far background and the grid box's closure would otherwise outnumber
+    the object, and its small parts would be dropped as specks).
 
     Near-zero-area faces are kept: skimage already drops exactly degenerate ones, and the
     slivers that remain (e.g. where a surface meets the capped box face) are needed for the
@@ -67,7 +72,11 @@ def clean_mesh(mesh: trimesh.Trimesh, min_component_fraction: float = 0.0) -> tr
         labels = trimesh.graph.connected_component_labels(mesh.face_adjacency,
                                                           node_count=len(mesh.faces))
         counts = np.bincount(labels)
-        keep = counts[labels] >= min_component_fraction * len(mesh.faces)
+        total = len(mesh.faces)
+        if roi is not None:
+            near = np.linalg.norm(mesh.triangles_center - np.asarray(roi[0]), axis=1) <= roi[1]
+            total = max(int(near.sum()), 1)
+        keep = counts[labels] >= min_component_fraction * total
         if not np.all(keep):
             mesh.update_faces(keep)
             mesh.remove_unreferenced_vertices()

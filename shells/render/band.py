@@ -21,7 +21,7 @@ import torch
 from shells.config import RenderConfig
 from shells.fields.neus import composite, neus_alpha
 from shells.render.raycast import ShellScene
-from shells.render.sampler import band_samples
+from shells.render.sampler import band_samples, field_warp
 
 
 def render_band_rays(field: torch.nn.Module,  # ShellField: field(x, d) -> sdf, s, normal, rgb
@@ -32,7 +32,8 @@ def render_band_rays(field: torch.nn.Module,  # ShellField: field(x, d) -> sdf, 
                      background: torch.Tensor,  # [3]
                      ) -> dict[str, torch.Tensor]:
     """color [R, 3], opacity [R] (of the band samples) and spp [R] (samples per ray)."""
-    t, delta, mask, solid = band_samples(scene, origins, dirs, cfg)  # [R, S] x 3, [R]
+    t, delta, mask, solid = band_samples(scene, origins, dirs, cfg,  # [R, S] x 3, [R]
+                                         field_warp(field))
     dev, dtype = origins.device, origins.dtype
     # own copies (the Dr.Jit buffers are reused), on the rays' device and in their dtype
     t, delta = t.to(dev, dtype, copy=True), delta.to(dev, dtype, copy=True)

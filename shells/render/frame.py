@@ -33,7 +33,7 @@ from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.render.occupancy import render_occupancy
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
-from shells.render.sampler import place_packed
+from shells.render.sampler import far_intervals, field_warp, place_packed
 from shells.render.shading import WHITE, composite_packed, end_colour, shade_samples
 
 MODES = ("band", "full", "occupancy")
@@ -72,6 +72,10 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
         iv = scene.intervals(o, d, cfg.dp_max)
         return render_intervals(field, o, d, iv, cfg, background)[:2]
     if mode == "full":
+        warp = field_warp(field)
+        if warp is not None:  # an unbounded field: the whole ray, evenly in contracted space
+            return render_intervals(field, o, d, far_intervals(o, d, warp), cfg, background,
+                                    fixed=cfg.full_samples)[:2]
         if aabb is None:
             raise InputError("full mode needs the scene box: pass aabb [2, 3]")
         return render_intervals(field, o, d, box_intervals(o, d, aabb), cfg, background,
@@ -93,7 +97,7 @@ def render_intervals(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
     samples per ray mi.UInt32 [R]; with ``extras`` also the opacity mi.Float [R] (1 on rays
     that end solid) and the weight-averaged field normal mi.Vector3f [R] (not normalised; 0
     without samples), which the adaptive refinement (`shells.render.refine`) compares."""
-    samples = place_packed(iv, cfg, fixed=fixed)
+    samples = place_packed(iv, cfg, fixed=fixed, warp=field_warp(field), o=o, d=d)
     bg = mi.Color3f(*[float(c) for c in background])
     n = dr.width(d)
     if samples.size == 0:

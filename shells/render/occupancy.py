@@ -45,6 +45,15 @@ Ray marching (`render_occupancy`)
 
 Samples per ray = field evaluations actually made for that ray.
 
+Unbounded fields (`field.similarity`, paper §4.7): the grid covers the field-space box (the
+contracted ball of radius 2 around the centre, `ShellField`) and is built from f and s there;
+rays march in the ray parameter s of `shells.render.warp` from the camera to t_far with a
+fixed step ds (cfg.occ_step, or that box's diagonal / 1024), each step's world point taken to
+field space for the lookup and its section [t(s - ds/2), t(s + ds/2)]: evenly in contracted
+space, as Instant-NGP's exponential stepping through its cascaded grids. The cell jump of the
+bounded march is left out there (a straight world ray is curved in field space), so every
+step is visited, but only the occupied ones are evaluated and counted.
+
 `raycast_floor` is the time floor of band rendering: the primary ray cast against M+ alone,
 no field evaluation.
 """
@@ -65,7 +74,8 @@ from shells.errors import InputError
 from shells.fields.neus import may_have_density
 from shells.levelset.grid import check_aabb
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
-from shells.render.sampler import PackedSamples
+from shells.render.sampler import PackedSamples, field_warp
+from shells.render.warp import ray_span, t_of_s
 from shells.render.shading import WHITE, composite_packed, shade_samples
 
 GRID_EVAL_CHUNK = 1 << 21  # points per field evaluation while building the grid
@@ -101,7 +111,9 @@ def _eval_f_s(field: Any, x: torch.Tensor  # [P, 3] float32 world points
               ) -> tuple[torch.Tensor, torch.Tensor]:  # f [P], s [P]
     """SDF and kernel size at points (geometry only when the field offers it)."""
     p = to_point3f(x, mi.Point3f)
-    if hasattr(field, "eval_geometry"):
+    if getattr(field, "similarity", None) is not None:  # an unbounded field's grid: field space
+        r = field.eval_geometry_field(p)
+    elif hasattr(field, "eval_geometry"):
         r = field.eval_geometry(p)
     else:  # fields without a geometry-only path: any direction will do for f and s
         r = field.eval(p, mi.Vector3f(0.0, 0.0, 1.0))
@@ -211,6 +223,33 @@ def _march(o: Any,  # mi.Point3f [Ra] live rays
     return n, j
 
 
+@dr.syntax
+def _march_warped(o: Any, d: Any,  # mi.Point3f / mi.Vector3f [Ra] live rays (world)
+                  tb: Any,  # mi.Float [Ra] each ray's t_b (shells.render.warp)
+                  n_steps: Any, j: Any,  # mi.UInt32 [Ra] steps in s, next step index
+                  occ: Any, lo: Any, inv_cell: Any,  # grid over the field-space box
+                  N: int, ds: float, K: int, centre: Any, radius: float,
+                  s_out: Any,  # mi.Float [Ra * K] written: sample parameters s
+                  ) -> tuple[Any, Any]:  # samples written [Ra], next step index [Ra]
+    """Collect up to K occupied steps per ray from step j on, in s, looking up each step's
+    field-space point (the contraction of its world point)."""
+    base = dr.arange(mi.UInt32, dr.width(j)) * K
+    n = mi.UInt32(0)
+    last = float(N - 1)
+    while dr.hint((n < K) & (j < n_steps), max_iterations=-1, label="occ_march_warped"):
+        s = (mi.Float(j) + 0.5) * ds
+        x = dr.fma(d, t_of_s(s, tb), o)
+        u = (x - centre) / radius
+        r = dr.norm(u)
+        z = dr.fma(u * dr.select(r > 1.0, (2.0 - dr.rcp(r)) * dr.rcp(r), 1.0), radius, centre)
+        ci = mi.Vector3u(dr.clip(dr.floor((z - lo) * inv_cell), 0.0, last))
+        if dr.gather(mi.Bool, occ, (ci.x * N + ci.y) * N + ci.z):
+            dr.scatter(s_out, s, base + n)
+            n += 1
+        j += 1
+    return n, j
+
+
 def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
                      origins: Any,  # [R, 3] torch/numpy or mi.Point3f
                      dirs: Any,  # [R, 3] unit directions
@@ -220,6 +259,9 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
                      grid: OccupancyGrid | None = None,  # default: occupancy_grid(field, ...)
                      ) -> tuple[Any, Any, Any]:
     """Colour mi.Color3f [R] over the background, opacity mi.Float [R], samples mi.UInt32 [R]."""
+    warp = field_warp(field)
+    if warp is not None:  # unbounded: the grid over the field-space box, marched in s
+        aabb = field.aabb
     if aabb is None:
         raise InputError("occupancy mode needs the scene box: pass aabb [2, 3]")
     grid = grid if grid is not None else occupancy_grid(field, aabb, cfg)
@@ -231,10 +273,15 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
     inv_cell = mi.Vector3f(*[1.0 / c for c in grid.cell])
     bg = mi.Color3f(*[float(c) for c in background])
 
-    iv = box_intervals(o, d, aabb)  # K = 1 interval: [near, far], count 0 on a miss
-    near, far = iv.enter.array, iv.exit.array  # [R]
-    hit = mi.Int(iv.count.array) > 0
-    steps = dr.select(hit, mi.UInt32(dr.ceil((far - near) / dt)), 0)  # [R]
+    if warp is None:
+        iv = box_intervals(o, d, aabb)  # K = 1 interval: [near, far], count 0 on a miss
+        near, far = iv.enter.array, iv.exit.array  # [R]
+        hit = mi.Int(iv.count.array) > 0
+        steps = dr.select(hit, mi.UInt32(dr.ceil((far - near) / dt)), 0)  # [R]
+    else:  # near = s of the camera = 0 (kept as t_b in `near` for the warped march)
+        near, t_far = ray_span(o, d, *warp)
+        far = 2.0 * near - near * near / t_far  # s(t_far)
+        steps = mi.UInt32(dr.ceil(far / dt))
 
     trans = dr.ones(mi.Float, R)  # outputs, written back for every live ray each round
     acc = dr.zeros(mi.Color3f, R)
@@ -256,15 +303,23 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
         Ra = dr.width(rid)
         growth = min(MAX_ROUND_GROWTH, 2 ** int(math.floor(math.log2(R0 / Ra))))
         K = int(cfg.occ_chunk) * growth  # samples per live ray this round
-        t_pad = dr.zeros(mi.Float, Ra * K)  # [Ra, K] padded sample distances
-        n, j = _march(ro, rd, t0, ns, j, grid.occ, lo, inv_cell, cell, N, dt, K, t_pad)
+        t_pad = dr.zeros(mi.Float, Ra * K)  # [Ra, K] padded sample distances (s if warped)
+        if warp is None:
+            n, j = _march(ro, rd, t0, ns, j, grid.occ, lo, inv_cell, cell, N, dt, K, t_pad)
+        else:
+            n, j = _march_warped(ro, rd, t0, ns, j, grid.occ, lo, inv_cell, N, dt, K,
+                                 mi.Point3f(*warp[0]), warp[1], t_pad)
         dr.eval(t_pad, n, j)
         slot = dr.arange(mi.UInt32, Ra * K)
         idx = dr.compress((slot % K) < dr.repeat(n, K))  # [M] valid slots, ray-major
         M = dr.width(idx)
         if M > 0:
-            samples = PackedSamples(t=dr.gather(mi.Float, t_pad, idx),
-                                    delta=dr.full(mi.Float, dt, M), ray=idx // K,
+            t, delta = dr.gather(mi.Float, t_pad, idx), dr.full(mi.Float, dt, M)
+            if warp is not None:  # s -> t, the section [s - ds/2, s + ds/2] -> world
+                tb = dr.gather(mi.Float, t0, idx // K)
+                t, delta = (t_of_s(t, tb),
+                            t_of_s(t + 0.5 * dt, tb) - t_of_s(t - 0.5 * dt, tb))
+            samples = PackedSamples(t=t, delta=delta, ray=idx // K,
                                     start=dr.prefix_sum(n), count=n, max_count=K)
             alpha, rgb = shade_samples(field, samples, ro, rd)  # [M] each
             c_round, o_round = composite_packed(alpha, rgb, samples.start, n, black)  # [Ra]

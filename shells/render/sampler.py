@@ -19,6 +19,13 @@ layout from the same counts:
   per-ray count of the batch (at least 1); unused slots are 0 and masked out.
 
 Both layouts also say which rays end solid (`solid_end`, the one rule both renderers apply).
+
+Unbounded scenes (``warp`` = the field's similarity and far radius, `shells.render.warp`):
+interval ends are taken to the ray parameter s first, so counts, spacing and sections are
+those above measured in s (evenly in contracted space), and each sample's distance and its
+section [t(s_lo), t(s_hi)] are taken back to world distances: the sections still tile the
+interval, and a far interval many world units wide gets the samples its contracted width asks
+for instead of N_max.
 """
 
 from __future__ import annotations
@@ -31,7 +38,8 @@ import mitsuba as mi
 import torch
 
 from shells.config import RenderConfig
-from shells.render.raycast import Intervals, ShellScene
+from shells.render.raycast import Intervals, ShellScene, to_point3f
+from shells.render.warp import ray_span, s_of_t, t_of_s
 
 
 @dataclass
@@ -70,11 +78,10 @@ def interval_counts(width: Any,  # mi.Float [...] interval widths (world units)
     return mi.UInt32(dr.minimum(n, float(n_max)))
 
 
-def _per_interval_counts(iv: Intervals, cfg: RenderConfig,
-                         fixed: int | None) -> tuple[Any, Any]:
+def _per_interval_counts(iv: Intervals, enter: Any, exit_: Any,  # [R * K] (in s if warped)
+                         cfg: RenderConfig, fixed: int | None) -> tuple[Any, Any]:
     """Counts per interval slot [R * K] (0 for unused slots) and per ray [R]."""
     R, K = iv.enter.shape
-    enter, exit_ = iv.enter.array, iv.exit.array
     slot = dr.arange(mi.UInt32, R * K)
     valid = (slot % K) < dr.repeat(mi.UInt32(iv.count.array), K)
     if fixed is None:
@@ -86,10 +93,52 @@ def _per_interval_counts(iv: Intervals, cfg: RenderConfig,
     return n, per_ray
 
 
+Warp = tuple  # (centre, radius, far_radius) of an unbounded field, see `field_warp`
+
+
+def field_warp(field: Any) -> Warp | None:
+    """The warp of a field (torch `ShellField` or its Dr.Jit twin): None when bounded."""
+    sim = getattr(field, "similarity", None)
+    if sim is None:
+        return None
+    far = getattr(field, "far_radius", None)
+    far = field.cfg.far_radius if far is None else far
+    return (tuple(sim.centre), float(sim.radius), float(far))
+
+
+def _warped_ends(iv: Intervals, o: Any, d: Any, warp: Warp | None) -> tuple[Any, Any, Any]:
+    """Interval ends [R * K] (in s when warped) and each ray's t_b [R] (None: not warped)."""
+    enter, exit_ = iv.enter.array, iv.exit.array
+    if warp is None:
+        return enter, exit_, None
+    tb, _ = ray_span(to_point3f(o, mi.Point3f), to_point3f(d, mi.Vector3f), *warp)
+    K = iv.enter.shape[1]
+    tbk = dr.repeat(tb, K) if K > 1 else tb
+    enter, exit_ = s_of_t(enter, tbk), s_of_t(exit_, tbk)
+    dr.eval(enter, exit_, tb)
+    return enter, exit_, tb
+
+
+def far_intervals(o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
+                  warp: Warp) -> Intervals:
+    """The whole ray of an unbounded scene as one interval, [0, t_far] (`shells.render.warp`):
+    the `full` baseline there (the scene box's chord in a bounded one)."""
+    from shells.render.raycast import _tensor_xi
+
+    _, t_far = ray_span(o, d, *warp)
+    n = dr.width(d)
+    zero = dr.zeros(mi.Float, n)
+    dr.eval(t_far, zero)
+    return Intervals(enter=mi.TensorXf(zero, (n, 1)), exit=mi.TensorXf(t_far, (n, 1)),
+                     count=_tensor_xi()(dr.full(mi.Int, 1, n), (n,)),
+                     t_inner=mi.TensorXf(dr.full(mi.Float, dr.inf, n), (n,)))
+
+
 @dr.syntax
 def _fill(enter: Any, exit_: Any, n_int: Any, per_ray: Any, base: Any, K: int,
-          t_out: Any, delta_out: Any, ray_out: Any) -> None:
-    """Write each ray's samples to t_out/delta_out/ray_out[base[r] + i], i < per_ray[r]."""
+          t_out: Any, delta_out: Any, ray_out: Any, tb: Any = None) -> None:
+    """Write each ray's samples to t_out/delta_out/ray_out[base[r] + i], i < per_ray[r].
+    With ``tb`` (each ray's t_b) the ends are in s and the outputs are taken back to t."""
     R = dr.width(per_ray)
     r = dr.arange(mi.UInt32, R)
     row = r * K
@@ -102,8 +151,13 @@ def _fill(enter: Any, exit_: Any, n_int: Any, per_ray: Any, base: Any, K: int,
         w = dr.maximum(dr.gather(mi.Float, exit_, row + k) - e, 0.0)
         nf = mi.Float(nk)
         dst = base + i
-        dr.scatter(t_out, dr.fma(w, mi.Float(j + 1) / (nf + 1.0), e), dst)
-        dr.scatter(delta_out, w / nf, dst)
+        if tb is None:
+            dr.scatter(t_out, dr.fma(w, mi.Float(j + 1) / (nf + 1.0), e), dst)
+            dr.scatter(delta_out, w / nf, dst)
+        else:  # the sample and its section [e + j w / n, e + (j + 1) w / n], back to t
+            dr.scatter(t_out, t_of_s(dr.fma(w, mi.Float(j + 1) / (nf + 1.0), e), tb), dst)
+            hi = t_of_s(dr.fma(w, mi.Float(j + 1) / nf, e), tb)
+            dr.scatter(delta_out, hi - t_of_s(dr.fma(w, mi.Float(j) / nf, e), tb), dst)
         if ray_out is not None:
             dr.scatter(ray_out, r, dst)
         i += 1
@@ -115,10 +169,13 @@ def _fill(enter: Any, exit_: Any, n_int: Any, per_ray: Any, base: Any, K: int,
 
 def place_packed(iv: Intervals, cfg: RenderConfig,
                  fixed: int | None = None,  # samples per interval instead of Procedure 3
+                 warp: Warp | None = None, o: Any = None, d: Any = None,  # unbounded: the
+                 # field's warp (`field_warp`) and the rays
                  ) -> PackedSamples:
     """Packed layout for the Dr.Jit renderer."""
     R, K = iv.enter.shape
-    n_int, per_ray = _per_interval_counts(iv, cfg, fixed)
+    enter, exit_, tb = _warped_ends(iv, o, d, warp)
+    n_int, per_ray = _per_interval_counts(iv, enter, exit_, cfg, fixed)
     start = dr.prefix_sum(per_ray)
     dr.eval(n_int, per_ray, start)
     M = int(dr.sum(per_ray)[0]) if R else 0
@@ -128,18 +185,19 @@ def place_packed(iv: Intervals, cfg: RenderConfig,
     delta = dr.zeros(mi.Float, size)
     ray = dr.zeros(mi.UInt32, size)
     if M > 0:
-        _fill(iv.enter.array, iv.exit.array, n_int, per_ray, start, K, t, delta, ray)
+        _fill(enter, exit_, n_int, per_ray, start, K, t, delta, ray, tb)
     dr.eval(t, delta, ray)
     return PackedSamples(t=t, delta=delta, ray=ray, start=start, count=per_ray,
                          max_count=max_count, solid=solid_end(iv.t_inner.array, per_ray))
 
 
-def place_padded(iv: Intervals, cfg: RenderConfig) -> tuple[torch.Tensor, torch.Tensor,
-                                                           torch.Tensor, torch.Tensor]:
+def place_padded(iv: Intervals, cfg: RenderConfig, warp: Warp | None = None, o: Any = None,
+                 d: Any = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Padded torch layout: t [R, S], delta [R, S], mask [R, S] bool, solid [R] bool
     (`solid_end`), on the device of the Mitsuba variant."""
     R, K = iv.enter.shape
-    n_int, per_ray = _per_interval_counts(iv, cfg, None)
+    enter, exit_, tb = _warped_ends(iv, o, d, warp)
+    n_int, per_ray = _per_interval_counts(iv, enter, exit_, cfg, None)
     solid = solid_end(iv.t_inner.array, per_ray)
     dr.eval(n_int, per_ray, solid)
     S = max(int(dr.max(per_ray)[0]) if R else 0, 1)
@@ -148,7 +206,7 @@ def place_padded(iv: Intervals, cfg: RenderConfig) -> tuple[torch.Tensor, torch.
     if R:
         # S changes from batch to batch: opaque, so it is not baked into (and recompiling) kernels
         base = dr.arange(mi.UInt32, R) * dr.opaque(mi.UInt32, S)
-        _fill(iv.enter.array, iv.exit.array, n_int, per_ray, base, K, t, delta, None)
+        _fill(enter, exit_, n_int, per_ray, base, K, t, delta, None, tb)
     dr.eval(t, delta)
     t_torch = mi.TensorXf(t, (R, S)).torch()
     delta_torch = mi.TensorXf(delta, (R, S)).torch()
@@ -162,8 +220,9 @@ def band_samples(scene: ShellScene,
                  origins: Any,  # [R, 3] torch (or Dr.Jit Point3f)
                  dirs: Any,  # [R, 3] unit directions
                  cfg: RenderConfig,
+                 warp: Warp | None = None,  # `field_warp` of an unbounded field
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Stage-2 training samples of rays cast against the shells: t [R, S], delta [R, S],
     mask [R, S] bool and solid [R] bool (`solid_end`), torch, no grad, on the device of the
     Mitsuba variant (the torch rays' device when the variant matches it)."""
-    return place_padded(scene.intervals(origins, dirs, cfg.dp_max), cfg)
+    return place_padded(scene.intervals(origins, dirs, cfg.dp_max), cfg, warp, origins, dirs)

@@ -23,6 +23,7 @@ import math
 import torch
 
 from shells.fields.neus import composite, may_have_density, neus_alpha
+from shells.render.warp import ray_span, s_of_t, t_of_s
 
 
 def ray_aabb(origins: torch.Tensor,  # [R, 3]
@@ -62,7 +63,7 @@ class SpanGrid:
         ix = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
         for a in range(0, N ** 3, self.chunk):
             x = self.aabb[0] + ix[a:a + self.chunk] * self.cell
-            geo = field.geometry(x)
+            geo = field.geometry_field(x)
             occ[a:a + len(x)] = may_have_density(geo["sdf"], geo["s"], self.h, self.k)
         grid = occ.reshape(1, 1, N, N, N).float()
         grid = torch.nn.functional.max_pool3d(grid, 3, stride=1, padding=1)
@@ -164,28 +165,41 @@ def render_volume_rays(field: torch.nn.Module,
                 span: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                 ) -> dict[str, torch.Tensor]:
     """Render rays through the field's scene box (`field.aabb`), or through ``span`` = (near,
-    far, hit) [R] each when given (`SpanGrid.spans`).
+    far, hit) [R] each when given (`SpanGrid.spans`). An unbounded field (`field.similarity`)
+    is sampled in the ray parameter s of `shells.render.warp` from the camera to the far
+    background instead: the same stratified and importance sampling, evenly in s.
 
     Returns color [R, 3], opacity [R], depth [R] (expected t), weights [R, S], points [R, S, 3],
     s [R, S] and hit [R]. Rays that miss the box (or their span) get the background.
     """
-    near, far, hit = ray_aabb(origins, dirs, field.aabb) if span is None else span
-    t = stratified_samples(near, far, n_samples, generator)
-    R = t.shape[0]
-    out = _field_at(field, origins, dirs, t)
+    sim = getattr(field, "similarity", None)
+    if sim is not None and span is None:  # u = s: even in contracted space
+        tb, t_far = ray_span(origins, dirs, sim.centre, sim.radius, field.cfg.far_radius)
+        near, far = torch.zeros_like(tb), s_of_t(t_far, tb)
+        hit = torch.ones_like(tb, dtype=torch.bool)
+        def to_t(u: torch.Tensor) -> torch.Tensor:
+            return t_of_s(u, tb[:, None])
+    else:  # u = t
+        near, far, hit = ray_aabb(origins, dirs, field.aabb) if span is None else span
+        def to_t(u: torch.Tensor) -> torch.Tensor:
+            return u
+    u = stratified_samples(near, far, n_samples, generator)
+    R = u.shape[0]
+    out = _field_at(field, origins, dirs, to_t(u))
     if n_importance > 0:
         # the coarse samples are evaluated once, with gradient; their weights (detached) place
         # the fine samples, which are evaluated and merged in distance order
         with torch.no_grad():
-            delta = torch.diff(section_edges(t, near, far), dim=-1)
+            delta = torch.diff(to_t(section_edges(u, near, far)), dim=-1)
             cos = (out["normal"] * dirs[:, None]).sum(-1)
             alpha = neus_alpha(out["sdf"], out["s"], cos, delta)
-            _, w, _ = composite(alpha, torch.zeros(*t.shape, 3, device=t.device), background)
-            t_fine = sample_pdf(t, w, near, far, n_importance, generator)
-        fine = _field_at(field, origins, dirs, t_fine)
-        t, order = torch.sort(torch.cat([t, t_fine], dim=-1), dim=-1)
+            _, w, _ = composite(alpha, torch.zeros(*u.shape, 3, device=u.device), background)
+            u_fine = sample_pdf(u, w, near, far, n_importance, generator)
+        fine = _field_at(field, origins, dirs, to_t(u_fine))
+        u, order = torch.sort(torch.cat([u, u_fine], dim=-1), dim=-1)
         out = {k: _merge(out[k], fine[k], order) for k in out}
-    delta = torch.diff(section_edges(t, near, far), dim=-1)  # [R, S]
+    t = to_t(u)
+    delta = torch.diff(to_t(section_edges(u, near, far)), dim=-1)  # [R, S]
     S = t.shape[1]
     d = dirs[:, None].expand(R, S, 3)
     pts = origins[:, None] + t[..., None] * dirs[:, None]  # [R, S, 3]

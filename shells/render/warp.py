@@ -1,0 +1,86 @@
+"""Where the samples of a ray go in an unbounded scene: a per-ray parameter s that advances
+evenly in contracted space (paper §4.7, after Mip-NeRF 360's disparity spacing).
+
+A ray o + t d (world, unit d) leaves the ball of interest (`shells.fields.contraction`,
+centre c, radius R) at t_b = R max(ball exit, 1) (a ray that never enters the ball, or
+leaves it within one radius, gets t_b = R). Then
+
+    s(t) = t                        t <= t_b     (contraction is the identity there)
+    s(t) = 2 t_b - t_b^2 / t        t >  t_b     (even in disparity 1 / t; s -> 2 t_b at t -> inf)
+    t(s) = s  or  t_b^2 / (2 t_b - s)
+
+is continuous with slope 1 at t_b, so s is a world length inside the ball and, for rays from
+the centre, exactly radius x the contracted radius beyond it. Every sampler of an unbounded
+field works in s: counts and spacings of samples are those of the bounded renderer measured
+in s (stage-1 stratified + importance samples, band intervals under Procedure 3, the
+occupancy-grid march, the full-ray baseline), and a sample's section [s - a, s + b] becomes
+the world section [t(s - a), t(s + b)] (so sections that tile an interval in s tile it in t).
+
+Rays end at t_far = R (|o_unit| + 1 / (2 - rho_end)), rho_end = (far_radius + 2) / 2: the point
+there is past the contracted radius rho_end, beyond the solid far sphere of the field
+(`ShellField`, cfg.far_radius), so every ray's samples reach the far background.
+
+The functions take torch tensors (stage 1) or Dr.Jit arrays (the renderers) and use the
+matching math; shapes broadcast as the caller arranges them.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+
+def _torch(x: Any) -> bool:
+    return isinstance(x, torch.Tensor)
+
+
+def s_of_t(t: Any, tb: Any) -> Any:
+    """s(t) for distances t and the ray's t_b (same shape or broadcastable)."""
+    if _torch(t):
+        far = 2.0 * tb - tb * tb / t.clamp_min(1e-30)
+        return torch.where(t > tb, far, t)
+    import drjit as dr
+    far = 2.0 * tb - tb * tb * dr.rcp(dr.maximum(t, 1e-30))
+    return dr.select(t > tb, far, t)
+
+
+def t_of_s(s: Any, tb: Any) -> Any:
+    """t(s), the inverse; s >= 2 t_b (infinitely far) is clamped just below it."""
+    if _torch(s):
+        gap = (2.0 * tb - s).clamp_min(1e-7 * tb)
+        return torch.where(s > tb, tb * tb / gap, s)
+    import drjit as dr
+    gap = dr.maximum(2.0 * tb - s, 1e-7 * tb)
+    return dr.select(s > tb, tb * tb * dr.rcp(gap), s)
+
+
+def _rho_end(far_radius: float) -> float:
+    return 0.5 * (far_radius + 2.0)
+
+
+def ray_span(o: Any, d: Any,  # [R, 3] torch, or Dr.Jit Point3f / Vector3f [R]
+             centre: tuple[float, float, float], radius: float, far_radius: float,
+             ) -> tuple[Any, Any]:  # t_b [R], t_far [R], world distances
+    """Each ray's t_b (where s stops being t) and t_far (its last distance)."""
+    reach = 1.0 / (2.0 - _rho_end(far_radius))
+    if _torch(o):
+        ou = (o - o.new_tensor(centre)) / radius
+        b = (ou * d).sum(-1)
+        c2 = (ou * ou).sum(-1)
+        exit_ = -b + (b * b - (c2 - 1.0)).clamp_min(0.0).sqrt()
+        tb = radius * exit_.clamp_min(1.0)
+        return tb, radius * (c2.sqrt() + reach)
+    import drjit as dr
+    import mitsuba as mi
+    ou = (o - mi.Point3f(*centre)) / radius
+    b = dr.dot(ou, d)
+    c2 = dr.squared_norm(ou)
+    exit_ = -b + dr.sqrt(dr.maximum(b * b - (c2 - 1.0), 0.0))
+    tb = radius * dr.maximum(exit_, 1.0)
+    return tb, radius * (dr.sqrt(c2) + reach)
+
+
+def section_to_world(s: Any, lo: Any, hi: Any, tb: Any) -> tuple[Any, Any]:
+    """A sample at s owning [s - lo, s + hi] in s: its world distance and section length."""
+    return t_of_s(s, tb), t_of_s(s + hi, tb) - t_of_s(s - lo, tb)

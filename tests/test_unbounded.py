@@ -1,0 +1,279 @@
+"""Unbounded scenes (issue 14): the contracted field and its Dr.Jit twin, the world slope
+normal, the ray parameter s of every sampler, and shells extracted in field space and mapped
+back to the world (containment, watertightness)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import mitsuba as mi
+import numpy as np
+import pytest
+import torch
+
+from shells.config import RenderConfig, ShellConfig, toy_config
+from shells.device import mitsuba_variant
+from shells.fields.contraction import Similarity, contract, contract_jacobian
+from shells.fields.drjit_field import DrJitField
+from shells.fields.network import ShellField
+from shells.levelset.extract import extract_shells
+from shells.levelset.unbounded import chord_deviation, to_world
+from shells.render.raycast import Intervals
+from shells.render.sampler import far_intervals, place_packed, place_padded
+from shells.render.volume import render_volume_rays
+from shells.render.warp import ray_span, s_of_t, t_of_s
+
+CENTRE, RADIUS = (0.1, 0.0, -0.2), 1.5
+
+
+def _field(seed: int = 0, randomise: bool = True) -> ShellField:
+    torch.manual_seed(seed)
+    cfg = dataclasses.replace(toy_config().field, unbounded=True, centre=CENTRE, radius=RADIUS)
+    f = ShellField(cfg, torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    if randomise:
+        with torch.no_grad():
+            f.grid.params.uniform_(-0.5, 0.5)
+            for p in list(f.geo_mlp.parameters()) + list(f.rad_mlp.parameters()):
+                p.add_(torch.randn_like(p) * 0.2)
+    return f
+
+
+def _points(n: int, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    u = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    r = RADIUS * 10 ** (2.5 * torch.rand(n, generator=g) - 1.0)  # 0.1 .. 30 radii
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    return torch.tensor(CENTRE) + u * r[:, None], d
+
+
+def test_field_space_box_identity_inside_and_far_solid():
+    f = _field()
+    np.testing.assert_allclose(f.aabb.numpy(), [[-2.9, -3.0, -3.2], [3.1, 3.0, 2.8]], atol=1e-6)
+    x, d = _points(4000)
+    u = (x - torch.tensor(CENTRE)) / RADIUS
+    inside = u.norm(dim=1) <= 1
+    z = f.to_field(x)
+    assert torch.equal(z[inside], x[inside])  # the identity in the ball of interest
+    torch.testing.assert_close(z, torch.tensor(CENTRE) + RADIUS * contract(u))
+    with torch.no_grad():
+        geo = f.geometry(x)
+        # beyond the far radius everything is solid, and the surface there is the far sphere
+        yz = (z - torch.tensor(CENTRE)) / RADIUS
+        beyond = yz.norm(dim=1) > f.cfg.far_radius
+        assert beyond.sum() > 100 and (geo["sdf"][beyond] < 0).all()
+        expect = RADIUS * (f.cfg.far_radius - yz.norm(dim=1))
+        assert (geo["sdf"] <= expect + 1e-6).all()
+
+
+def test_world_slope_normal_is_the_contraction_jacobian_applied_to_the_field_normal():
+    f = _field()
+    x, d = _points(3000)
+    with torch.no_grad():
+        geo = f.geometry(x)
+    J = contract_jacobian(((x - torch.tensor(CENTRE)) / RADIUS).double()).float()
+    torch.testing.assert_close(geo["normal"], (J.transpose(1, 2) @ geo["n_unit"][..., None])[..., 0],
+                               rtol=0, atol=1e-5)
+    # where the far sphere is the surface, n is the exact gradient direction there, so the
+    # slope normal is the world gradient of f itself (autograd through the contraction)
+    xg = x.clone().requires_grad_(True)
+    sdf = f.geometry(xg)["sdf"]
+    (grad,) = torch.autograd.grad(sdf.sum(), xg)
+    z = f.to_field(x)
+    on_dome = sdf.detach() == f._dome(z)
+    assert on_dome.sum() > 500
+    torch.testing.assert_close(geo["normal"][on_dome], grad[on_dome], rtol=1e-4, atol=1e-6)
+    # and |slope normal| <= 1 everywhere (the contraction only shrinks)
+    assert float(geo["normal"].norm(dim=1).max()) <= 1.0 + 1e-5
+
+
+def test_drjit_twin_matches_torch_on_an_unbounded_field():
+    mitsuba_variant()
+    f = _field(seed=3)
+    x, d = _points(8000, seed=4)
+    with torch.no_grad():
+        ref = f(x, d)
+    twin = DrJitField(f)
+    out = twin.eval_torch(x, d)
+    for k in ("sdf", "s", "normal", "rgb"):
+        torch.testing.assert_close(out[k], ref[k], rtol=0, atol=1e-4, msg=k)
+    geo = twin.eval_torch(x)
+    torch.testing.assert_close(geo["sdf"], ref["sdf"], rtol=0, atol=1e-4)
+    # field-space evaluation (the occupancy grid's)
+    z = f.to_field(x)
+    r = twin.eval_geometry_field(mi.Point3f(*[mi.Float(z[:, i].contiguous()) for i in range(3)]))
+    torch.testing.assert_close(r.sdf.torch(), ref["sdf"], rtol=0, atol=1e-4)
+
+
+def test_ray_parameter_s_is_contracted_distance_from_the_centre():
+    tb = torch.tensor([2.0, 3.0])
+    t = torch.tensor([[0.5, 2.0, 4.0, 1e6], [1.0, 3.0, 6.0, 30.0]])
+    s = s_of_t(t, tb[:, None])
+    torch.testing.assert_close(t_of_s(s, tb[:, None])[:, :3], t[:, :3])
+    # hand-worked: t_b = 2, t = 4 -> s = 4 - 4 / 4 = 3; s -> 2 t_b far away
+    assert float(s[0, 2]) == pytest.approx(3.0)
+    assert float(s[0, 3]) == pytest.approx(4.0, abs=1e-5)
+    # continuous with slope 1 at t_b
+    eps = 1e-4
+    for b in tb.tolist():
+        tt = torch.tensor([b - eps, b, b + eps], dtype=torch.float64)
+        ss = s_of_t(tt, torch.tensor(b, dtype=torch.float64))
+        assert float((ss[2] - ss[0]) / (2 * eps)) == pytest.approx(1.0, abs=1e-3)
+    # a ray from the centre: s = radius x the contracted radius of its point
+    o = torch.tensor([CENTRE])
+    d = torch.nn.functional.normalize(torch.tensor([[0.3, -1.0, 0.2]]), dim=1)
+    tb1, t_far = ray_span(o, d, CENTRE, RADIUS, 1.95)
+    assert float(tb1) == pytest.approx(RADIUS)
+    ts = torch.tensor([0.7, 1.5, 3.0, 20.0, 400.0])
+    y = contract((o + ts[:, None] * d - torch.tensor(CENTRE)) / RADIUS)
+    torch.testing.assert_close(s_of_t(ts, tb1), RADIUS * y.norm(dim=1))
+    # the last distance lies beyond the solid far sphere
+    y_far = contract((o + t_far * d - torch.tensor(CENTRE)) / RADIUS)
+    assert float(y_far.norm()) > 1.95
+
+
+def test_band_sampler_counts_a_far_interval_in_s_and_tiles_it_in_t():
+    mitsuba_variant()
+    cfg = RenderConfig(w_s=0.01, delta_s=0.02, n_max=16)
+    warp = (CENTRE, RADIUS, 1.95)
+    o = torch.tensor([CENTRE, CENTRE])
+    d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    # a near interval (inside the ball: s = t) and a far one, 30 -> 60 world units
+    iv = Intervals.from_arrays([[0.5, 30.0], [30.0, 0.0]], [[0.56, 60.0], [60.0, 0.0]], [2, 1])
+    p = place_packed(iv, cfg, warp=warp, o=o, d=d)
+    t, delta, ray = (v.numpy() for v in (p.t, p.delta, p.ray))
+    counts = p.count.numpy()
+    # ray 0: [0.5, 0.56] in the ball: 4 samples as unwarped; [30, 60] is 0.0375 wide in s
+    # (s = 2 t_b - t_b^2 / t, t_b = 1.5): 2 samples, not the 16 of its world width
+    s30, s60 = 3.0 - 2.25 / 30.0, 3.0 - 2.25 / 60.0
+    n_far = math.ceil((s60 - s30 - 0.01) / 0.02) + 1
+    assert counts.tolist() == [4 + n_far, n_far]
+    r0 = t[ray == 0]
+    assert np.all(np.diff(r0) > 0) and r0[-1] < 60.0 and r0[4] > 30.0
+    # the sections tile each interval exactly, in world units
+    np.testing.assert_allclose(delta[ray == 0][:4].sum(), 0.06, rtol=1e-5)
+    np.testing.assert_allclose(delta[ray == 0][4:].sum(), 30.0, rtol=1e-4)
+    np.testing.assert_allclose(delta[ray == 1].sum(), 30.0, rtol=1e-4)
+    tp, dp, mask, _ = place_padded(iv, cfg, warp, o, d)
+    np.testing.assert_allclose(tp[mask].numpy(), t, rtol=1e-6)
+    np.testing.assert_allclose(dp[mask].numpy(), delta, rtol=1e-6)
+
+
+def test_every_sampler_reaches_the_far_background():
+    """Stage 1 (torch) and the full-ray baseline (Dr.Jit) sample every ray out past the far
+    sphere, evenly in s, so an untrained field already absorbs every ray."""
+    mitsuba_variant()
+    f = _field(randomise=False)
+    g = torch.Generator().manual_seed(0)
+    o = torch.tensor(CENTRE) + torch.nn.functional.normalize(torch.randn(64, 3, generator=g),
+                                                             dim=1) * 2.5 * RADIUS
+    d = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=1)
+    with torch.no_grad():
+        out = render_volume_rays(f, o, d, 32, 16, torch.ones(3))
+    y_last = contract((out["points"][:, -1] - torch.tensor(CENTRE)) / RADIUS).norm(dim=1)
+    assert (y_last > 1.9).all()  # the last sample lies in the far background
+    _, t_far = ray_span(o, d, CENTRE, RADIUS, f.cfg.far_radius)
+    y_end = contract((o + t_far[:, None] * d - torch.tensor(CENTRE)) / RADIUS).norm(dim=1)
+    assert (y_end > f.cfg.far_radius).all()  # the ray ends inside the far solid
+    assert (out["opacity"] > 0.999).all()  # which absorbs it (its kernel is sharp)
+    po = mi.Point3f(*[mi.Float(o[:, i].contiguous()) for i in range(3)])
+    pd = mi.Vector3f(*[mi.Float(d[:, i].contiguous()) for i in range(3)])
+    p = place_packed(far_intervals(po, pd, (CENTRE, RADIUS, 1.95)), RenderConfig(), fixed=64,
+                     warp=(CENTRE, RADIUS, 1.95), o=po, d=pd)
+    assert p.count.numpy().tolist() == [64] * 64
+    t = p.t.numpy().reshape(64, 64)
+    x_last = o + torch.from_numpy(t[:, -1:]).float() * d
+    assert (contract((x_last - torch.tensor(CENTRE)) / RADIUS).norm(dim=1) > 1.9).all()
+
+
+def _winding(mesh, pts: np.ndarray, chunk: int = 16) -> np.ndarray:
+    """Generalised winding number of a triangle mesh at points (solid angles / 4 pi)."""
+    tri = np.asarray(mesh.triangles, np.float64)
+    out = np.empty(len(pts))
+    for a in range(0, len(pts), chunk):
+        p = pts[a:a + chunk, None, None, :]
+        v = tri[None] - p  # [P, F, 3, 3]
+        n = np.linalg.norm(v, axis=-1)
+        a_, b_, c_ = v[..., 0, :], v[..., 1, :], v[..., 2, :]
+        det = np.einsum("pfi,pfi->pf", a_, np.cross(b_, c_))
+        den = (n[..., 0] * n[..., 1] * n[..., 2] + np.einsum("pfi,pfi->pf", a_, b_) * n[..., 2]
+               + np.einsum("pfi,pfi->pf", b_, c_) * n[..., 0]
+               + np.einsum("pfi,pfi->pf", c_, a_) * n[..., 1])
+        # a point in a triangle's plane (off the surface) sees it under solid angle 0; atan2
+        # would give +-pi there when den < 0 (marching cubes makes axis-aligned triangles)
+        omega = np.where(np.abs(det) > 1e-14, 2.0 * np.arctan2(det, den), 0.0)
+        out[a:a + chunk] = omega.sum(1) / (4 * np.pi)
+    return out
+
+
+def test_shells_in_field_space_mapped_to_the_world_contain_the_solid():
+    """An analytic scene in field space (a ball of radius 0.3, a room beyond contracted radius
+    1.6, solid beyond it): the world shells are closed and M+ holds every solid grid point
+    (winding number 1; marching cubes closes the solid at the grid's box, which ends up
+    clamped at contracted radius 1.99, 100 radii out), M- only solid ones."""
+    sim = Similarity(CENTRE, RADIUS)
+    res = 64
+    box = np.array([np.asarray(CENTRE) - 2 * RADIUS, np.asarray(CENTRE) + 2 * RADIUS])
+    ax = [np.linspace(box[0, i], box[1, i], res) for i in range(3)]
+    Z = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    y = np.linalg.norm((Z - np.asarray(CENTRE)) / RADIUS, axis=1)
+    f = np.minimum(RADIUS * y - 0.3, RADIUS * (1.6 - y)).reshape(res, res, res)
+    s = np.full_like(f, 0.03)
+    cfg = ShellConfig(resolution=res, dilate_zeta=0.25, erode_zeta=0.1)
+    sh = extract_shells(f, s, box, cfg, roi=(CENTRE, RADIUS))
+    h = float((box[1, 0] - box[0, 0]) / (res - 1))
+    outer, rep_o = to_world(sh.outer, sim, h)
+    inner, rep_i = to_world(sh.inner, sim, h)
+    assert outer.is_watertight and inner.is_watertight
+    assert rep_o["within_tolerance"] and rep_i["within_tolerance"]
+    assert rep_o["max_chord_deviation_h"] <= 0.1
+    # the room's M+ lies about 1.6 radii out in field space: 1 / (2 - 1.6) = 2.5 radii away
+    r_world = np.linalg.norm(np.asarray(outer.vertices) - np.asarray(CENTRE), axis=1)
+    assert r_world.max() > 2.2 * RADIUS
+    # the small ball is kept although the far parts have 100x its faces
+    assert len(outer.split(only_watertight=False)) == 3
+    rng = np.random.default_rng(0)
+    fv = f.reshape(-1)
+    solid = np.flatnonzero((fv < -1e-3 * h) & (y < 1.98))
+    pick = rng.choice(solid, 400, replace=False)
+    world = (contract_inv(Z[pick], sim))
+    w_out = _winding(outer, world)
+    np.testing.assert_allclose(w_out, 1.0, atol=1e-3)
+    # grid points in free space well outside M+: winding 0 there
+    free = np.flatnonzero(fv > 0.35)
+    pick = rng.choice(free, 200, replace=False)
+    np.testing.assert_allclose(_winding(outer, contract_inv(Z[pick], sim)), 0.0, atol=1e-3)
+    # M- only holds solid: points with winding 1 of M- (inside its solid) have f <= 0
+    pick = rng.choice(len(Z), 600, replace=False)
+    keep = y[pick] < 1.98
+    pts = contract_inv(Z[pick][keep], sim)
+    in_inner = _winding(inner, pts) > 0.5
+    assert in_inner.sum() > 50 and (fv[pick][keep][in_inner] <= 0).all()
+
+
+def contract_inv(z: np.ndarray, sim: Similarity) -> np.ndarray:
+    from shells.fields.contraction import uncontract
+    y = (z - np.asarray(sim.centre)) / sim.radius
+    return uncontract(torch.from_numpy(y)).numpy() * sim.radius + np.asarray(sim.centre)
+
+
+def test_to_world_splits_triangles_until_the_chords_fit():
+    """A coarse far mesh (an icosphere at contracted radius 1.9) has chords far off its curved
+    image; it is split into four until they fit, and stays closed; a loose tolerance needs no
+    split."""
+    import trimesh
+
+    sim = Similarity(CENTRE, RADIUS)
+    ico = trimesh.creation.icosphere(subdivisions=1, radius=1.9 * RADIUS)
+    ico.apply_translation(CENTRE)
+    world0 = contract_inv(np.asarray(ico.vertices), sim)
+    dev0 = chord_deviation(ico, world0, sim).max()
+    out, rep = to_world(ico, sim, spacing=1.0, tol=dev0 / 4.0)
+    assert rep["splits"] >= 1 and rep["within_tolerance"]
+    assert rep["max_chord_deviation_h"] <= dev0 / 4.0 and out.is_watertight
+    assert len(out.faces) == len(ico.faces) * 4 ** rep["splits"]
+    # the world vertices are the mapped (split) field-space vertices
+    r = np.linalg.norm((np.asarray(out.vertices) - np.asarray(CENTRE)) / RADIUS, axis=1)
+    assert r.max() == pytest.approx(1.0 / (2.0 - 1.9), rel=1e-6)
+    same, rep0 = to_world(ico, sim, spacing=1.0, tol=2.0 * dev0)
+    assert rep0["splits"] == 0 and len(same.faces) == len(ico.faces)
