@@ -51,7 +51,7 @@ class FieldConfig:
     min_kernel: float = 1e-4  # lower clamp on s (numerical safety)
     max_kernel: float = 1.0  # upper clamp on s
     global_kernel: bool = False  # one learned s for the whole scene (ablation, paper Table 4)
-    # unbounded captures (paper §4.7; shells/fields/contraction.py): the field lives in
+    # unbounded captures (paper §4.7; shells/contraction.py): the field lives in
     # contracted space, x -> centre + radius c((x - centre) / radius), over the box
     # centre +- 2 radius; the identity inside the ball of interest (so world units there)
     unbounded: bool = False  # set by shells-train --scene unbounded (or from the data set)

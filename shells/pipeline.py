@@ -393,10 +393,11 @@ def cage_run(run_dir: str | Path, margin: float | None = None, resolution: int =
     `shells.levelset.cage.build_cage`) and write {cage.npz, cage.vtu, cage.json} into
     RUN/cage (RUN/cage/lod); returns the statistics."""
     from shells.levelset.cage import build_cage, write_cage
-    from shells.run import run_id, shell_meshes, shells_digest
+    from shells.run import require_bounded, run_id, shell_meshes, shells_digest
 
     run = RunDir(run_dir)
     read_run(run)
+    require_bounded(run, "shells-cage", "tetrahedralizes the space around one object")
     outer, inner = shell_meshes(run, shells)
     cage, emb = build_cage(outer, inner, margin, resolution, edge_length, epsilon, threads)
     extra = {"run_id": run_id(run), "shells": shells, "shells_sha1": shells_digest(run, shells)}
@@ -463,7 +464,7 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
     from shells.fields.drjit_field import DrJitField
     from shells.render.deformed import CageAsset
     from shells.render.views import render_view, to_png, write_video
-    from shells.run import load_cage
+    from shells.run import load_cage, require_bounded
 
     if frames < 1:
         raise InputError(f"--frames {frames}: need at least 1")
@@ -473,6 +474,7 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
         raise InputError(f"--zoom {zoom}: must be > 0")
     run = RunDir(run_dir)
     meta = check_run(run, "band")
+    require_bounded(run, "shells-animate", "deforms one object through its cage")
     cage, emb, outer, inner = load_cage(run, shells)
     loaded = resolve_stage(run, stage)
     field, cfg = load_field(run.root, device="cpu", stage=loaded)
@@ -532,11 +534,12 @@ def lod_run(run_dir: str | Path, ratio: float = 10.0, parity_rays: int = 100_000
     from shells.errors import read_json
     from shells.levelset.lod import LodParams, make_lod
     from shells.levelset.mesh import write_ply
-    from shells.run import shell_meshes, shells_digest
+    from shells.run import require_bounded, shell_meshes, shells_digest
 
     import trimesh
 
     run = RunDir(run_dir)
+    require_bounded(run, "shells-lod", "simplifies the shells of one object in its box")
     read_run(run)
     outer, inner = shell_meshes(run)
     fine = read_json(run.shells / "stats.json", "shell statistics; re-run shells-extract")

@@ -251,6 +251,17 @@ def read_run(run: RunDir) -> dict[str, Any]:
     return meta
 
 
+def require_bounded(run: RunDir, command: str, why: str) -> None:
+    """A one-line error when RUN is an unbounded scene (field.unbounded in its config) and
+    ``command`` works on bounded objects only (``why`` says what it needs)."""
+    if not run.config.is_file():
+        return
+    cfg = read_json(run.config)
+    if isinstance(cfg, dict) and (cfg.get("field") or {}).get("unbounded", False):
+        raise InputError(f"{run.root}: an unbounded scene (trained with --scene unbounded); "
+                         f"{command} {why}, so it takes bounded runs only")
+
+
 def run_id(run: RunDir) -> str | None:
     """The run's id from run.json (None for runs written before ids existed, or none yet)."""
     return read_run(run).get("run_id") if run.run_json.is_file() else None

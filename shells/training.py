@@ -29,7 +29,7 @@ from shells.config import Config, TrainConfig, object_config, toy_config
 from shells.datasets import (Dataset, load_dataset, read_frames, region_of_interest,
                              says_unbounded)
 from shells.errors import InputError, write_json
-from shells.fields.contraction import Similarity
+from shells.contraction import Similarity
 from shells.fields.network import ShellField
 from shells.loop import Schedule, join, make_optimizer, optimise, psnr_of
 from shells.metrics import psnr
@@ -89,10 +89,12 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
     cams = frames.cameras.downscaled(downscale)
     if name == "auto" and max(cams.width, cams.height) <= TOY_MAX_SIDE:
         return _toy_for(sim), "toy"
+    if sim is not None:  # sized for the field-space box, centre +- 2 radius
+        centre = torch.tensor(sim.centre, dtype=torch.float64)
+        distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
+        return object_config(4.0 * sim.radius, float(cams.fx.double().median()),
+                             distance), "object"
     box = frames.aabb.double()
-    if sim is not None:
-        c, r = torch.tensor(sim.centre, dtype=torch.float64), 2.0 * sim.radius
-        box = torch.stack([c - r, c + r])
     centre = 0.5 * (box[0] + box[1])
     distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
     focal = float(cams.fx.double().median())
@@ -144,12 +146,17 @@ def regularisers(field: ShellField,
 def reg_points(field: ShellField, ray_points: torch.Tensor, n: int,
                gen: torch.Generator) -> torch.Tensor:
     """Field-space points: half from the ray samples (where the image loss acts), half uniform
-    in the field's box (all uniform when there are no ray samples)."""
+    in the field's box (all uniform when there are no ray samples). An unbounded field's
+    uniform points are split between its box and the cube around the ball of interest (which
+    holds 1/8 of that box's volume, and the object)."""
     flat = field.to_field(ray_points.detach().reshape(-1, 3))
     n_ray = n // 2 if flat.shape[0] else 0
     pick = torch.randint(0, max(1, flat.shape[0]), (n_ray,), generator=gen, device=flat.device)
     lo, hi = field.aabb[0], field.aabb[1]
     uni = lo + (hi - lo) * torch.rand(n - n_ray, 3, generator=gen, device=flat.device)
+    if field.similarity is not None:  # the second half of them in the ball's cube
+        k = (n - n_ray) // 2
+        uni[k:] = 0.5 * (lo + hi) + 0.5 * (uni[k:] - 0.5 * (lo + hi))
     return torch.cat([flat[pick], uni])
 
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from shells.errors import InputError
-from shells.fields.contraction import (Similarity, ball_exit, contract, contract_jacobian,
+from shells.contraction import (Similarity, ball_exit, contract, contract_jacobian,
                                        unbounded_spacing, uncontract)
 
 

@@ -6,7 +6,7 @@ dependency). Layers, bottom to top (a module may import only lower layers, or it
 subpackage at the same layer):
 
     0 errors
-    1 config, device, cameras, metrics, distributed
+    1 config, device, cameras, contraction, metrics, distributed
     2 datasets, camera_paths, scenes/
     3 fields/, levelset/, deform/, process_data
     4 render/
@@ -27,7 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RANKS = {
     "shells": 0,  # the package's __init__ (a docstring and the version)
     "shells.errors": 0,
-    "shells.config": 1, "shells.device": 1, "shells.cameras": 1, "shells.metrics": 1,
+    "shells.config": 1, "shells.device": 1, "shells.cameras": 1, "shells.contraction": 1,
+    "shells.metrics": 1,
     "shells.distributed": 1,
     "shells.datasets": 2, "shells.camera_paths": 2, "scenes": 2,
     "shells.process_data": 3,

@@ -14,7 +14,7 @@ import torch
 
 from shells.config import RenderConfig, ShellConfig, toy_config
 from shells.device import mitsuba_variant
-from shells.fields.contraction import Similarity, contract, contract_jacobian
+from shells.contraction import Similarity, contract, contract_jacobian
 from shells.fields.drjit_field import DrJitField
 from shells.fields.network import ShellField
 from shells.levelset.extract import extract_shells
@@ -122,7 +122,8 @@ def test_ray_parameter_s_is_contracted_distance_from_the_centre():
     # a ray from the centre: s = radius x the contracted radius of its point
     o = torch.tensor([CENTRE])
     d = torch.nn.functional.normalize(torch.tensor([[0.3, -1.0, 0.2]]), dim=1)
-    tb1, t_far = ray_span(o, d, CENTRE, RADIUS, 1.95)
+    near1, tb1, t_far = ray_span(o, d, CENTRE, RADIUS, 1.95)
+    assert float(near1) == 0.0  # from inside the ball: from the camera on
     assert float(tb1) == pytest.approx(RADIUS)
     ts = torch.tensor([0.7, 1.5, 3.0, 20.0, 400.0])
     y = contract((o + ts[:, None] * d - torch.tensor(CENTRE)) / RADIUS)
@@ -172,7 +173,7 @@ def test_every_sampler_reaches_the_far_background():
         out = render_volume_rays(f, o, d, 32, 16, torch.ones(3))
     y_last = contract((out["points"][:, -1] - torch.tensor(CENTRE)) / RADIUS).norm(dim=1)
     assert (y_last > 1.9).all()  # the last sample lies in the far background
-    _, t_far = ray_span(o, d, CENTRE, RADIUS, f.cfg.far_radius)
+    _, _, t_far = ray_span(o, d, CENTRE, RADIUS, f.cfg.far_radius)
     y_end = contract((o + t_far[:, None] * d - torch.tensor(CENTRE)) / RADIUS).norm(dim=1)
     assert (y_end > f.cfg.far_radius).all()  # the ray ends inside the far solid
     assert (out["opacity"] > 0.999).all()  # which absorbs it (its kernel is sharp)
@@ -252,7 +253,7 @@ def test_shells_in_field_space_mapped_to_the_world_contain_the_solid():
 
 
 def contract_inv(z: np.ndarray, sim: Similarity) -> np.ndarray:
-    from shells.fields.contraction import uncontract
+    from shells.contraction import uncontract
     y = (z - np.asarray(sim.centre)) / sim.radius
     return uncontract(torch.from_numpy(y)).numpy() * sim.radius + np.asarray(sim.centre)
 
@@ -277,3 +278,54 @@ def test_to_world_splits_triangles_until_the_chords_fit():
     assert r.max() == pytest.approx(1.0 / (2.0 - 1.9), rel=1e-6)
     same, rep0 = to_world(ico, sim, spacing=1.0, tol=2.0 * dev0)
     assert rep0["splits"] == 0 and len(same.faces) == len(ico.faces)
+
+
+def _ring_data(root, outward: bool):
+    """A Blender data set of 8 cameras on a ring of radius 0.2 around the origin, looking
+    outwards (cameras inside the object) or inwards, marked unbounded."""
+    import imageio.v3 as iio
+    import json
+
+    (root / "train").mkdir(parents=True)
+    frames = []
+    for k in range(8):
+        a = 2 * math.pi * k / 8
+        pos = np.array([0.2 * math.cos(a), 0.2 * math.sin(a), 0.0])
+        back = pos / np.linalg.norm(pos) * (-1.0 if outward else 1.0)  # OpenGL: looks along -z
+        up = np.array([0.0, 0.0, 1.0])
+        right = np.cross(up, back)
+        c2w = np.eye(4)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(back, right), back, pos
+        iio.imwrite(root / "train" / f"r_{k}.png", np.full((4, 4, 3), 100, np.uint8))
+        frames.append({"file_path": f"train/r_{k}", "transform_matrix": c2w.tolist()})
+    (root / "transforms_train.json").write_text(json.dumps(
+        {"camera_angle_x": 0.7, "unbounded": True, "frames": frames}))
+    return root
+
+
+def test_bad_input_cameras_inside_the_object_and_bounded_only_commands(tmp_path, capsys):
+    from shells.cli import cage_main, lod_main, train_main
+    from shells.training import scene_similarity
+
+    def one_line_error(status: int) -> str:
+        err = capsys.readouterr().err.strip().splitlines()
+        assert status == 2 and len(err) == 1, err
+        return err[0]
+
+    bad = _ring_data(tmp_path / "out", outward=True)
+    msg = one_line_error(train_main(["--data", str(bad), "--out", str(tmp_path / "run")]))
+    assert "look outwards" in msg and str(bad) in msg
+    assert not (tmp_path / "run").exists()  # nothing written
+    good = _ring_data(tmp_path / "in", outward=False)
+    sim = scene_similarity(good, "auto")  # the file says unbounded
+    assert sim is not None and sim.radius == pytest.approx(1.5)  # half the default box side
+    assert scene_similarity(good, "bounded") is None
+    # an unbounded run refused by the commands for one bounded object
+    run = tmp_path / "urun"
+    run.mkdir()
+    cfg = toy_config()
+    cfg.update({"field": {"unbounded": True}}, "test")
+    (run / "config.json").write_text(__import__("json").dumps(cfg.to_dict()))
+    (run / "run.json").write_text('{"data": "x", "downscale": 1, "format": 1}')
+    for main in (cage_main, lod_main):
+        assert "unbounded scene" in one_line_error(main([str(run)]))

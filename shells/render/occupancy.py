@@ -47,7 +47,7 @@ Samples per ray = field evaluations actually made for that ray.
 
 Unbounded fields (`field.similarity`, paper §4.7): the grid covers the field-space box (the
 contracted ball of radius 2 around the centre, `ShellField`) and is built from f and s there;
-rays march in the ray parameter s of `shells.render.warp` from the camera to t_far with a
+rays march in the ray parameter s of `shells.render.warp` from t_near to t_far with a
 fixed step ds (cfg.occ_step, or that box's diagonal / 1024), each step's world point taken to
 field space for the lookup and its section [t(s - ds/2), t(s + ds/2)]: evenly in contracted
 space, as Instant-NGP's exponential stepping through its cascaded grids. The cell jump of the
@@ -278,10 +278,11 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
         near, far = iv.enter.array, iv.exit.array  # [R]
         hit = mi.Int(iv.count.array) > 0
         steps = dr.select(hit, mi.UInt32(dr.ceil((far - near) / dt)), 0)  # [R]
-    else:  # near = s of the camera = 0 (kept as t_b in `near` for the warped march)
-        near, t_far = ray_span(o, d, *warp)
+    else:  # steps j from s(t_near) = t_near to s(t_far); t_b is kept in `near` for the march
+        t_near, near, t_far = ray_span(o, d, *warp)
         far = 2.0 * near - near * near / t_far  # s(t_far)
         steps = mi.UInt32(dr.ceil(far / dt))
+        first = mi.UInt32(dr.floor(t_near / dt))
 
     trans = dr.ones(mi.Float, R)  # outputs, written back for every live ray each round
     acc = dr.zeros(mi.Color3f, R)
@@ -292,7 +293,8 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
     # live-ray state, compacted together with rid
     ro, rd = dr.gather(mi.Point3f, o, rid), dr.gather(mi.Vector3f, d, rid)
     t0, ns = dr.gather(mi.Float, near, rid), dr.gather(mi.UInt32, steps, rid)
-    j = dr.zeros(mi.UInt32, dr.width(rid))
+    j = (dr.zeros(mi.UInt32, dr.width(rid)) if warp is None
+         else dr.gather(mi.UInt32, first, rid))
     T = dr.ones(mi.Float, dr.width(rid))
     C = dr.zeros(mi.Color3f, dr.width(rid))
     n_total = dr.zeros(mi.UInt32, dr.width(rid))

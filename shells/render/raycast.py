@@ -65,7 +65,7 @@ class Intervals:
         if e.ndim != 2 or x.shape != e.shape or c.shape != e.shape[:1] or ti.shape != c.shape:
             raise InputError(f"intervals: expected enter/exit [R, K], count/t_inner [R]; got "
                              f"{tuple(e.shape)}, {tuple(x.shape)}, {tuple(c.shape)}")
-        return cls(enter=mi.TensorXf(e), exit=mi.TensorXf(x), count=_tensor_xi()(c),
+        return cls(enter=mi.TensorXf(e), exit=mi.TensorXf(x), count=tensor_xi()(c),
                    t_inner=mi.TensorXf(ti))
 
     def torch(self) -> dict[str, torch.Tensor]:
@@ -74,7 +74,7 @@ class Intervals:
                 "count": self.count.torch(), "t_inner": self.t_inner.torch()}
 
 
-def _tensor_xi() -> type:
+def tensor_xi() -> type:
     """The int32 tensor type of the current Mitsuba variant's backend."""
     return dr.cuda.ad.TensorXi if mi.variant().startswith("cuda") else dr.llvm.ad.TensorXi
 
@@ -95,7 +95,7 @@ def box_intervals(o: Any,  # mi.Point3f [R]
     dr.eval(near, maxt, hit)  # one kernel; the sampler gathers from these
     n = dr.width(d)
     return Intervals(enter=mi.TensorXf(near, (n, 1)), exit=mi.TensorXf(maxt, (n, 1)),
-                     count=_tensor_xi()(dr.select(hit, mi.Int(1), mi.Int(0)), (n,)),
+                     count=tensor_xi()(dr.select(hit, mi.Int(1), mi.Int(0)), (n,)),
                      t_inner=mi.TensorXf(dr.full(mi.Float, dr.inf, n), (n,)))
 
 
@@ -199,7 +199,7 @@ class ShellScene:
                                K, dp_max, mode)
         dr.eval(enter, exit_, count, t_inner)
         return Intervals(enter=mi.TensorXf(enter, (n, K)), exit=mi.TensorXf(exit_, (n, K)),
-                         count=_tensor_xi()(mi.Int(count), (n,)),
+                         count=tensor_xi()(mi.Int(count), (n,)),
                          t_inner=mi.TensorXf(t_inner, (n,)))
 
 

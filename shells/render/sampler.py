@@ -38,7 +38,7 @@ import mitsuba as mi
 import torch
 
 from shells.config import RenderConfig
-from shells.render.raycast import Intervals, ShellScene, to_point3f
+from shells.render.raycast import Intervals, ShellScene, tensor_xi, to_point3f
 from shells.render.warp import ray_span, s_of_t, t_of_s
 
 
@@ -111,26 +111,26 @@ def _warped_ends(iv: Intervals, o: Any, d: Any, warp: Warp | None) -> tuple[Any,
     enter, exit_ = iv.enter.array, iv.exit.array
     if warp is None:
         return enter, exit_, None
-    tb, _ = ray_span(to_point3f(o, mi.Point3f), to_point3f(d, mi.Vector3f), *warp)
+    near, tb, _ = ray_span(to_point3f(o, mi.Point3f), to_point3f(d, mi.Vector3f), *warp)
     K = iv.enter.shape[1]
     tbk = dr.repeat(tb, K) if K > 1 else tb
-    enter, exit_ = s_of_t(enter, tbk), s_of_t(exit_, tbk)
+    nk = dr.repeat(near, K) if K > 1 else near
+    # every sampler starts at t_near (`shells.render.warp.ray_span`): intervals are cut there
+    enter = s_of_t(dr.maximum(enter, nk), tbk)
+    exit_ = s_of_t(dr.maximum(exit_, nk), tbk)
     dr.eval(enter, exit_, tb)
     return enter, exit_, tb
 
 
 def far_intervals(o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
                   warp: Warp) -> Intervals:
-    """The whole ray of an unbounded scene as one interval, [0, t_far] (`shells.render.warp`):
+    """The whole ray of an unbounded scene as one interval, [t_near, t_far] (`ray_span`):
     the `full` baseline there (the scene box's chord in a bounded one)."""
-    from shells.render.raycast import _tensor_xi
-
-    _, t_far = ray_span(o, d, *warp)
+    near, _, t_far = ray_span(o, d, *warp)
     n = dr.width(d)
-    zero = dr.zeros(mi.Float, n)
-    dr.eval(t_far, zero)
-    return Intervals(enter=mi.TensorXf(zero, (n, 1)), exit=mi.TensorXf(t_far, (n, 1)),
-                     count=_tensor_xi()(dr.full(mi.Int, 1, n), (n,)),
+    dr.eval(t_far, near)
+    return Intervals(enter=mi.TensorXf(near, (n, 1)), exit=mi.TensorXf(t_far, (n, 1)),
+                     count=tensor_xi()(dr.full(mi.Int, 1, n), (n,)),
                      t_inner=mi.TensorXf(dr.full(mi.Float, dr.inf, n), (n,)))
 
 

@@ -174,8 +174,9 @@ def render_volume_rays(field: torch.nn.Module,
     """
     sim = getattr(field, "similarity", None)
     if sim is not None and span is None:  # u = s: even in contracted space
-        tb, t_far = ray_span(origins, dirs, sim.centre, sim.radius, field.cfg.far_radius)
-        near, far = torch.zeros_like(tb), s_of_t(t_far, tb)
+        t_near, tb, t_far = ray_span(origins, dirs, sim.centre, sim.radius,
+                                     field.cfg.far_radius)
+        near, far = t_near, s_of_t(t_far, tb)  # t_near <= t_b: s = t there
         hit = torch.ones_like(tb, dtype=torch.bool)
         def to_t(u: torch.Tensor) -> torch.Tensor:
             return t_of_s(u, tb[:, None])

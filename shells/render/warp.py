@@ -1,7 +1,7 @@
 """Where the samples of a ray go in an unbounded scene: a per-ray parameter s that advances
 evenly in contracted space (paper §4.7, after Mip-NeRF 360's disparity spacing).
 
-A ray o + t d (world, unit d) leaves the ball of interest (`shells.fields.contraction`,
+A ray o + t d (world, unit d) leaves the ball of interest (`shells.contraction`,
 centre c, radius R) at t_b = R max(ball exit, 1) (a ray that never enters the ball, or
 leaves it within one radius, gets t_b = R). Then
 
@@ -16,7 +16,7 @@ in s (stage-1 stratified + importance samples, band intervals under Procedure 3,
 occupancy-grid march, the full-ray baseline), and a sample's section [s - a, s + b] becomes
 the world section [t(s - a), t(s + b)] (so sections that tile an interval in s tile it in t).
 
-Rays end at t_far = R (|o_unit| + 1 / (2 - rho_end)), rho_end = (far_radius + 2) / 2: the point
+Rays start at t_near (`ray_span`) and end at t_far = R (|o_unit| + 1 / (2 - rho_end)), rho_end = (far_radius + 2) / 2: the point
 there is past the contracted radius rho_end, beyond the solid far sphere of the field
 (`ShellField`, cfg.far_radius), so every ray's samples reach the far background.
 
@@ -61,24 +61,35 @@ def _rho_end(far_radius: float) -> float:
 
 def ray_span(o: Any, d: Any,  # [R, 3] torch, or Dr.Jit Point3f / Vector3f [R]
              centre: tuple[float, float, float], radius: float, far_radius: float,
-             ) -> tuple[Any, Any]:  # t_b [R], t_far [R], world distances
-    """Each ray's t_b (where s stops being t) and t_far (its last distance)."""
+             ) -> tuple[Any, Any, Any]:  # t_near [R], t_b [R], t_far [R], world distances
+    """Each ray's first distance t_near, its t_b (where s stops being t) and its last
+    distance t_far.
+
+    t_near is where the ray enters the ball of interest (0 from a camera inside it), or, for
+    a ray that misses the ball, its point nearest to the centre: as a bounded scene's rays
+    start at its box, nothing is sampled between an inward-looking camera and the region it
+    looks at (a design choice for inward-facing captures; it gives the field no room for
+    floaters in front of the cameras). Every sampler starts there."""
     reach = 1.0 / (2.0 - _rho_end(far_radius))
     if _torch(o):
         ou = (o - o.new_tensor(centre)) / radius
         b = (ou * d).sum(-1)
         c2 = (ou * ou).sum(-1)
-        exit_ = -b + (b * b - (c2 - 1.0)).clamp_min(0.0).sqrt()
-        tb = radius * exit_.clamp_min(1.0)
-        return tb, radius * (c2.sqrt() + reach)
+        disc = b * b - (c2 - 1.0)
+        root = disc.clamp_min(0.0).sqrt()
+        near = torch.where(disc > 0, -b - root, -b).clamp_min(0.0)
+        tb = (-b + root).clamp_min(1.0)
+        return radius * near, radius * tb, radius * (c2.sqrt() + reach)
     import drjit as dr
     import mitsuba as mi
     ou = (o - mi.Point3f(*centre)) / radius
     b = dr.dot(ou, d)
     c2 = dr.squared_norm(ou)
-    exit_ = -b + dr.sqrt(dr.maximum(b * b - (c2 - 1.0), 0.0))
-    tb = radius * dr.maximum(exit_, 1.0)
-    return tb, radius * (dr.sqrt(c2) + reach)
+    disc = b * b - (c2 - 1.0)
+    root = dr.sqrt(dr.maximum(disc, 0.0))
+    near = dr.maximum(dr.select(disc > 0, -b - root, -b), 0.0)
+    tb = dr.maximum(-b + root, 1.0)
+    return radius * near, radius * tb, radius * (dr.sqrt(c2) + reach)
 
 
 def section_to_world(s: Any, lo: Any, hi: Any, tb: Any) -> tuple[Any, Any]:
