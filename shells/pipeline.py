@@ -102,7 +102,8 @@ def _unbounded_to_world(shells: Any, field: Any) -> None:
     h = float(np.max(shells.stats["spacing"]))
     report = {}
     for name in ("outer", "inner"):
-        mesh, report[name] = to_world(getattr(shells, name), field.similarity, h)
+        mesh, report[name] = to_world(getattr(shells, name), field.similarity, h,
+                                      far=field.cfg.far_radius)
         setattr(shells, name, mesh)
         shells.stats[f"{name}_triangles"] = int(len(mesh.faces))
         shells.stats[f"{name}_vertices"] = int(len(mesh.vertices))

@@ -72,8 +72,8 @@ def test_world_slope_normal_is_the_contraction_jacobian_applied_to_the_field_nor
     with torch.no_grad():
         geo = f.geometry(x)
     J = contract_jacobian(((x - torch.tensor(CENTRE)) / RADIUS).double()).float()
-    torch.testing.assert_close(geo["normal"], (J.transpose(1, 2) @ geo["n_unit"][..., None])[..., 0],
-                               rtol=0, atol=1e-5)
+    jn = (J.transpose(1, 2) @ geo["n_unit"][..., None])[..., 0]
+    torch.testing.assert_close(geo["normal"], jn, rtol=0, atol=1e-5)
     # where the far sphere is the surface, n is the exact gradient direction there, so the
     # slope normal is the world gradient of f itself (autograd through the contraction)
     xg = x.clone().requires_grad_(True)
@@ -329,3 +329,64 @@ def test_bad_input_cameras_inside_the_object_and_bounded_only_commands(tmp_path,
     (run / "run.json").write_text('{"data": "x", "downscale": 1, "format": 1}')
     for main in (cage_main, lod_main):
         assert "unbounded scene" in one_line_error(main([str(run)]))
+
+
+def test_regularisers_act_on_the_network_not_on_the_far_solid():
+    """The far solid is an exact SDF with exact normals and a constant kernel: on
+    min(f_net, solid) the Eikonal, normal and smoothness terms could be zeroed by raising
+    f_net above it. They see the network alone."""
+    from shells.training import regularisers
+
+    f = _field(seed=5)
+    g = torch.Generator().manual_seed(0)
+    u = torch.nn.functional.normalize(torch.randn(500, 3, generator=g), dim=1)
+    z = torch.tensor(CENTRE) + u * RADIUS * 1.97  # all beyond the far radius
+    with torch.no_grad():
+        assert torch.equal(f.sdf(z), f._dome(z))  # the solid is what renders there
+        reg = regularisers(f, z, 1e-3, 1e-2, torch.Generator().manual_seed(1))
+        grad = f.sdf_gradient_fd(z, 1e-3, far=False)
+        eik = ((grad.norm(dim=-1) - 1.0) ** 2).mean()
+        # on the solid the terms would be 0 (|grad| = 1, normal = -y / |y|, constant s)
+        assert float(f.sdf_gradient_fd(z, 1e-3).norm(dim=-1).sub(1).abs().max()) < 1e-2
+    torch.testing.assert_close(reg["eikonal"], eik)
+    assert float(reg["eikonal"]) > 1e-3 and float(reg["normal"]) > 1e-3
+    assert float(reg["smooth"]) > 0.0
+
+
+def test_occupancy_and_band_baselines_agree_with_full_rays_on_an_unbounded_field():
+    """The untrained field (the init sphere inside the far solid): the occupancy-grid march in
+    s and the band render of its shells give the full-ray colours with far fewer samples."""
+    from shells.levelset.grid import sample_grid
+    from shells.render.frame import render_rays
+    from shells.render.raycast import ShellScene
+
+    mitsuba_variant()
+    f = _field(randomise=False)
+    with torch.no_grad():  # a little colour and view dependence, so the colours differ
+        f.rad_mlp[-1].bias.copy_(torch.tensor([0.3, -0.2, 0.1]))
+    twin = DrJitField(f)
+    g = torch.Generator().manual_seed(0)
+    o = torch.tensor(CENTRE) + torch.nn.functional.normalize(torch.randn(300, 3, generator=g),
+                                                             dim=1) * 2.0 * RADIUS
+    aim = torch.tensor(CENTRE) + 0.6 * torch.randn(300, 3, generator=g)
+    d = torch.nn.functional.normalize(aim - o, dim=1)
+    cfg = dataclasses.replace(RenderConfig(), full_samples=1024, occ_resolution=64)
+    full, n_full = render_rays(twin, o, d, cfg, "full")
+    occ, n_occ = render_rays(twin, o, d, cfg, "occupancy")
+    ref = full.numpy()
+    assert np.abs(occ.numpy() - ref).max() < 0.03
+    assert n_occ.numpy().mean() < 0.5 * n_full.numpy().mean()
+    # shells of the same field, extracted in field space and mapped to the world
+    with torch.no_grad():
+        fz, sz, _ = sample_grid(lambda z: (f.geometry_field(z)["sdf"],
+                                           f.geometry_field(z)["s"]), f.aabb.numpy(), 96)
+    sh = extract_shells(fz, sz, f.aabb.numpy(), ShellConfig(resolution=96),
+                        roi=(CENTRE, RADIUS))
+    h = float((f.aabb[1, 0] - f.aabb[0, 0]) / 95)
+    outer, _ = to_world(sh.outer, f.similarity, h, far=f.cfg.far_radius)
+    inner, _ = to_world(sh.inner, f.similarity, h, far=f.cfg.far_radius)
+    scene = ShellScene((np.asarray(outer.vertices), np.asarray(outer.faces)),
+                       (np.asarray(inner.vertices), np.asarray(inner.faces)))
+    band, n_band = render_rays(twin, o, d, cfg, "band", scene)
+    assert np.abs(band.numpy() - ref).max() < 0.03
+    assert n_band.numpy().mean() < 0.1 * n_full.numpy().mean()

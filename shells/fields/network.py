@@ -121,6 +121,12 @@ class ShellField(nn.Module):
         last.weight[0] = 4.0 / H
         last.bias[0] = -self.cfg.init_radius
         last.bias[1] = 0.0
+        if self.cfg.unbounded:
+            # the predicted normal starts as grad f of that sphere: the mean of u max(u . v, 0)
+            # over unit u is v / 6, so these rows give n_raw ~ (x - centre), radial
+            G = self.cfg.geo_feature_dim
+            last.weight[2 + G:] = (fibonacci_sphere(H).T * (6.0 / H)).float()
+            last.bias[2 + G:] = 0.0
 
     # -- evaluation ----------------------------------------------------------------------------
     def normalize(self, x: torch.Tensor  # [N, 3] field space
@@ -133,7 +139,8 @@ class ShellField(nn.Module):
         """s = exp(log s_min + (log s_max - log s_min) sigmoid(z + z0)): a soft clamp."""
         return torch.exp(self.log_kmin + self.log_krange * torch.sigmoid(z + self.kernel_z0))
 
-    def _geo_raw(self, z: torch.Tensor  # [N, 3] field space (the world for bounded fields)
+    def _geo_raw(self, z: torch.Tensor,  # [N, 3] field space (the world for bounded fields)
+                 far: bool = True,  # False: the network alone, without the far solid
                  ) -> tuple[torch.Tensor, torch.Tensor]:  # x_n [N, 3], raw outputs [N, 2+G+3]
         if z.ndim != 2 or z.shape[1] != 3:
             raise InputError(f"ShellField: points must be [N, 3], got {tuple(z.shape)}")
@@ -144,7 +151,7 @@ class ShellField(nn.Module):
             mask = (torch.arange(L * Fl, device=z.device) < self.active_levels * Fl)
             feats = feats * mask.to(feats.dtype)
         raw = self.geo_mlp(torch.cat([xn, feats], dim=1))
-        if self.similarity is not None:  # the solid far background: f = min(f_net, dome)
+        if self.similarity is not None and far:  # the solid far background: min(f_net, dome)
             dome = self._dome(z)
             on = dome < raw[:, 0]
             f = torch.where(on, dome, raw[:, 0])
@@ -165,13 +172,14 @@ class ShellField(nn.Module):
         far = torch.linalg.vector_norm(u, dim=-1, keepdim=True) > 1.0
         return torch.where(far, self.similarity.to_world(contract(u)), x)  # x itself inside
 
-    def geometry_field(self, z: torch.Tensor  # [N, 3] field space
+    def geometry_field(self, z: torch.Tensor,  # [N, 3] field space
+                       far: bool = True,  # False: the network alone (the regularisers)
                        ) -> dict[str, torch.Tensor]:
         """sdf [N], s [N], feat [N, G], normal [N, 3] (unit, field space), xn [N, 3]."""
-        xn, raw = self._geo_raw(z)
+        xn, raw = self._geo_raw(z, far)
         G = self.cfg.geo_feature_dim
         normal = F.normalize(raw[:, 2 + G:], dim=1, eps=NORMAL_EPS)
-        if self.similarity is not None:  # where the far sphere is the surface, its normal
+        if self.similarity is not None and far:  # the far sphere's normal where it is the surface
             y = self.similarity.to_unit(z)
             inward = -y / torch.linalg.vector_norm(y, dim=-1, keepdim=True).clamp_min(1e-12)
             on_dome = (raw[:, 0] == self._dome(z))[:, None]
@@ -215,16 +223,21 @@ class ShellField(nn.Module):
         geo["rgb"] = self.radiance(d, geo)
         return geo
 
-    def sdf(self, z: torch.Tensor) -> torch.Tensor:  # [N, 3] field space -> [N]
-        return self._geo_raw(z)[1][:, 0]
+    def sdf(self, z: torch.Tensor,  # [N, 3] field space
+            far: bool = True) -> torch.Tensor:  # [N]
+        return self._geo_raw(z, far)[1][:, 0]
 
-    def kernel(self, z: torch.Tensor) -> torch.Tensor:  # [N, 3] field space -> s [N]
-        return self.kernel_from_logit(self._geo_raw(z)[1][:, 1])
+    def kernel(self, z: torch.Tensor,  # [N, 3] field space
+               far: bool = True) -> torch.Tensor:  # s [N]
+        """s(z); ``far`` False: the network's own kernel, also where the far solid's sharp
+        constant one applies (the smoothness prior is on the learned kernel field only)."""
+        return self.kernel_from_logit(self._geo_raw(z, far)[1][:, 1])
 
     def sdf_gradient_fd(self, x: torch.Tensor,  # [N, 3] field space
-                        eps: float) -> torch.Tensor:  # [N, 3]
-        """grad_z f by central differences (f(x + eps e_i) - f(x - eps e_i)) / (2 eps), one batched call."""
+                        eps: float, far: bool = True) -> torch.Tensor:  # [N, 3]
+        """grad_z f by central differences (f(x + eps e_i) - f(x - eps e_i)) / (2 eps), one
+        batched call; ``far`` False: of the network alone."""
         offs = torch.eye(3, dtype=x.dtype, device=x.device) * eps  # [3, 3]
         pts = torch.cat([x[:, None, :] + offs, x[:, None, :] - offs], dim=1)  # [N, 6, 3]
-        f = self.sdf(pts.reshape(-1, 3)).view(-1, 6)
+        f = self.sdf(pts.reshape(-1, 3), far).view(-1, 6)
         return (f[:, :3] - f[:, 3:]) / (2.0 * eps)

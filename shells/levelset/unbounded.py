@@ -20,7 +20,8 @@ the check is repeated: the deviation falls 4x per split. On the test scenes and 
 256^3 no split was needed (BENCHMARKS.md). Vertices beyond the contracted radius ``clamp``
 (1.99, 100 radii away; only the inner shell's part in the solid far sphere gets there, and
 points at radius 2 are infinitely far) are pulled in radially to it: they stay inside the far
-solid, so M- stays inside the solid.
+solid, so M- stays inside the solid. Edges with both ends in the far solid (beyond the far
+radius) are not checked: their chords stay in it.
 """
 
 from __future__ import annotations
@@ -57,11 +58,20 @@ def _to_field(x: np.ndarray, sim: Similarity) -> np.ndarray:
     return contract(torch.from_numpy(u)).numpy() * sim.radius + np.asarray(sim.centre)
 
 
-def chord_deviation(mesh: trimesh.Trimesh, world: np.ndarray, sim: Similarity) -> np.ndarray:
-    """Per unique edge: |W(chord midpoint) - field-space midpoint| (field-space units)."""
+def chord_deviation(mesh: trimesh.Trimesh, world: np.ndarray, sim: Similarity,
+                    far: float | None = None) -> np.ndarray:
+    """Per unique edge: |W(chord midpoint) - field-space midpoint| (field-space units); 0 for
+    edges with both ends beyond the contracted radius ``far`` (inside the far solid, where a
+    chord stays: it dips by r (1 - cos(angle / 2)), a millionth of r for a grid cell)."""
     e = mesh.edges_unique
     if len(e) == 0:
         return np.zeros(0)
+    if far is not None:
+        y = np.linalg.norm((np.asarray(mesh.vertices) - np.asarray(sim.centre)) / sim.radius,
+                           axis=1)
+        e = e[(y[e[:, 0]] <= far) | (y[e[:, 1]] <= far)]
+        if len(e) == 0:
+            return np.zeros(1)
     zm = 0.5 * (mesh.vertices[e[:, 0]] + mesh.vertices[e[:, 1]])
     wm = 0.5 * (world[e[:, 0]] + world[e[:, 1]])
     return np.linalg.norm(_to_field(wm, sim) - zm, axis=1)
@@ -70,6 +80,7 @@ def chord_deviation(mesh: trimesh.Trimesh, world: np.ndarray, sim: Similarity) -
 def to_world(mesh: trimesh.Trimesh,  # field-space shell (vertices z)
              sim: Similarity, spacing: float,  # the grid spacing h (field space)
              tol: float = TOL, clamp: float = CLAMP, max_splits: int = MAX_SPLITS,
+             far: float | None = None,  # the field's far radius: edges beyond are not checked
              ) -> tuple[trimesh.Trimesh, dict]:
     """The world mesh W^-1(mesh) with chords within ``tol`` h of the field-space mesh (see the
     module), and its report: splits made, largest deviation (in h), clamped vertices."""
@@ -81,7 +92,7 @@ def to_world(mesh: trimesh.Trimesh,  # field-space shell (vertices z)
         z, clamped = _clamped(np.asarray(m.vertices), sim, clamp)
         m = trimesh.Trimesh(z, m.faces, process=False)
         world = _to_world(z, sim)
-        dev = float(chord_deviation(m, world, sim).max()) / spacing
+        dev = float(chord_deviation(m, world, sim, far).max()) / spacing
         if dev <= tol or splits >= max_splits:
             break
         v, f = trimesh.remesh.subdivide(m.vertices, m.faces)

@@ -63,7 +63,7 @@ class SpanGrid:
         ix = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
         for a in range(0, N ** 3, self.chunk):
             x = self.aabb[0] + ix[a:a + self.chunk] * self.cell
-            geo = field.geometry_field(x)
+            geo = field.geometry(x)  # bounded fields only (train.sampler rule)
             occ[a:a + len(x)] = may_have_density(geo["sdf"], geo["s"], self.h, self.k)
         grid = occ.reshape(1, 1, N, N, N).float()
         grid = torch.nn.functional.max_pool3d(grid, 3, stride=1, padding=1)
