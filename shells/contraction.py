@@ -63,33 +63,6 @@ def contract_jacobian(x: torch.Tensor) -> torch.Tensor:
     return torch.where(r > 1.0, far, eye)
 
 
-def ball_exit(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    """Ray distance [...] at which rays o + t d (similarity frame, |d| = 1) leave the unit ball;
-    0 for a ray that starts outside it and never enters (then every sample is "far")."""
-    b = (o * d).sum(-1)
-    disc = b * b - ((o * o).sum(-1) - 1.0)
-    return (-b + disc.clamp_min(0.0).sqrt()).clamp_min(0.0)
-
-
-def unbounded_spacing(t_near: torch.Tensor, t_exit: torch.Tensor, n_near: int, n_far: int
-                      ) -> torch.Tensor:
-    """Stage-1 sample distances [..., n_near + n_far] of rays through an unbounded scene:
-    ``n_near`` evenly in t on [t_near, t_exit) (inside the unit ball, where contraction is the
-    identity) and ``n_far`` evenly in disparity 1/t beyond it, t = t_exit / (1 - k / n_far) for
-    k = 0 .. n_far - 1, so that (for a ray from the centre) the contracted points are evenly
-    spaced out to the radius-2 sphere: the far background gets as many samples per unit of
-    contracted space as the foreground. Distances are non-decreasing. t_exit <= t_near: the
-    ray runs outside the ball; its near samples then sit at t_near (intervals of zero width)
-    and the far ones start there."""
-    t_exit = torch.maximum(t_exit, t_near)
-    k = torch.arange(n_near, dtype=t_near.dtype, device=t_near.device) / max(n_near, 1)
-    near = t_near[..., None] + (t_exit - t_near)[..., None] * k
-    j = torch.arange(n_far, dtype=t_near.dtype, device=t_near.device) / max(n_far, 1)
-    start = t_exit.clamp_min(1e-6)[..., None]
-    far = start / (1.0 - j)
-    return torch.cat([near, far], -1)
-
-
 @dataclass(frozen=True)
 class Similarity:
     """x = (p - centre) / radius: the region of interest of a capture into the unit ball."""

@@ -85,11 +85,6 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
         return Config(), "paper"
     if name == "toy":
         return _toy_for(sim), "toy"
-    return _preset(name, data_dir, downscale, sim)
-
-
-def _preset(name: str, data_dir: str | Path, downscale: int,
-            sim: Similarity | None) -> tuple[Config, str]:
     frames = read_frames(data_dir, "train")
     cams = frames.cameras.downscaled(downscale)
     if name == "auto" and max(cams.width, cams.height) <= TOY_MAX_SIDE:

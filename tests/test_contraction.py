@@ -9,8 +9,7 @@ import pytest
 import torch
 
 from shells.errors import InputError
-from shells.contraction import (Similarity, ball_exit, contract, contract_jacobian,
-                                       unbounded_spacing, uncontract)
+from shells.contraction import Similarity, contract, contract_jacobian, uncontract
 
 
 def _points(n: int = 2000, seed: int = 0) -> torch.Tensor:
@@ -92,24 +91,3 @@ def test_similarity_refuses_outward_and_parallel_cameras():
     o = np.random.default_rng(0).normal(size=(8, 3))
     with pytest.raises(InputError, match="parallel"):
         Similarity.from_cameras(o, np.tile([0.0, 0.0, -1.0], (8, 1)), "transforms.json")
-
-
-def test_unbounded_spacing_is_even_in_contracted_space():
-    o = torch.zeros(1, 3, dtype=torch.float64)
-    d = torch.tensor([[0.0, 0.6, 0.8]], dtype=torch.float64)
-    t_exit = ball_exit(o, d)
-    assert float(t_exit) == pytest.approx(1.0)
-    t = unbounded_spacing(torch.zeros(1, dtype=torch.float64), t_exit, 4, 8)[0]
-    np.testing.assert_allclose(t[:4].numpy(), [0.0, 0.25, 0.5, 0.75])
-    assert bool((t[1:] > t[:-1]).all())
-    # from the centre, contracted radii 0 .. 2 in even steps: 4 inside, 8 outside
-    r = torch.linalg.vector_norm(contract(o + t[:, None] * d), dim=-1)
-    np.testing.assert_allclose(r.numpy(), np.concatenate([np.arange(4) / 4,
-                                                          1 + np.arange(8) / 8]), atol=1e-12)
-    # a camera outside the ball looking past it: no ball interval, everything in disparity
-    o2 = torch.tensor([[3.0, 0.0, 0.0]], dtype=torch.float64)
-    d2 = torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64)
-    assert float(ball_exit(o2, d2)) == 0.0
-    t2 = unbounded_spacing(torch.full((1,), 0.1, dtype=torch.float64), ball_exit(o2, d2), 4, 8)
-    np.testing.assert_allclose(t2[0, :4].numpy(), 0.1)  # the near samples collapse to t_near
-    assert bool((t2[0, 1:] >= t2[0, :-1]).all())

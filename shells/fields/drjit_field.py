@@ -38,6 +38,17 @@ class FieldSample:
     rgb: Any  # Array3f in (0, 1); None from eval_geometry
 
 
+def contract_point(x, centre: tuple[float, float, float], radius: float):
+    """W(x) = centre + radius c((x - centre) / radius) for Dr.Jit 3-vectors (x itself inside
+    the ball), with u = (x - centre) / radius and |u|: the contraction of
+    `shells.contraction`, for the twin and the occupancy march of an unbounded field."""
+    c = type(x)(*centre)
+    u = (x - c) / radius
+    r = dr.norm(u)
+    z = dr.select(r > 1.0, dr.fma(u * ((2.0 - dr.rcp(r)) * dr.rcp(r)), radius, c), x)
+    return z, u, r
+
+
 def _sigmoid(x):
     return dr.rcp(1.0 + dr.exp(-x))
 
@@ -61,6 +72,8 @@ class DrJitField:
         self.log_kmin, self.log_krange = field.log_kmin, field.log_krange
         self.kernel_z0 = field.kernel_z0
         self.similarity = field.similarity  # None: bounded (field space = world)
+        self._ball = (None if field.similarity is None else
+                      (field.similarity.centre, float(field.similarity.radius)))
         self.far_radius = float(field.cfg.far_radius)
         self.dome_logit = float(field.dome_logit)
         self.aabb = aabb  # field-space box [2, 3]
@@ -90,17 +103,19 @@ class DrJitField:
                 net[f"layers.{i}.bias"] = self.TensorXf(m.bias.detach().float().cpu())
         return dr.nn.pack(net, layout="inference")
 
-    def _raw(self, z):  # Array3f field space -> (xn [3 Floats], raw [2+G+3 Floats])
+    def _raw(self, z):  # Array3f field space -> (xn [3 Floats], raw [2+G+3 Floats], on)
+        """``on``: where the far solid is the surface (None for a bounded field)."""
         xn = [(z[i] - self.centre[i]) * self.inv_half[i] for i in range(3)]
         p01 = [dr.clip(v * 0.5 + 0.5, 0.0, 1.0) for v in xn]
         feats = list(self.encoding(p01))
         raw = list(self.geo_mlp(dr.nn.CoopVec(*xn, *feats)))
-        if self.similarity is not None:  # the solid far background (ShellField._geo_raw)
-            dome = self._dome(z)
-            on = dome < raw[0]
-            raw[0] = dr.select(on, dome, raw[0])
-            raw[1] = dr.select(on, self.dome_logit, raw[1])
-        return xn, raw
+        if self.similarity is None:
+            return xn, raw, None
+        dome = self._dome(z)  # the solid far background (ShellField._geo_raw)
+        on = dome < raw[0]
+        raw[0] = dr.select(on, dome, raw[0])
+        raw[1] = dr.select(on, self.dome_logit, raw[1])
+        return xn, raw, on
 
     def _unit(self, p):  # Array3f -> (p - centre) / radius
         c, r = self.similarity.centre, self.similarity.radius
@@ -109,25 +124,17 @@ class DrJitField:
     def _dome(self, z):
         return self.similarity.radius * (self.far_radius - dr.norm(self._unit(z)))
 
-    def _to_field(self, x):  # Array3f world -> (z, u = unit-frame x, |u|)
-        u = self._unit(x)
-        r = dr.norm(u)
-        scale = dr.select(r > 1.0, (2.0 - dr.rcp(r)) * dr.rcp(r), 1.0)
-        c, R = self.similarity.centre, self.similarity.radius
-        z = self.Array3f(*[dr.select(r > 1.0, u[i] * scale * R + c[i], x[i]) for i in range(3)])
-        return z, u, r
-
     def _kernel(self, z):
         return dr.exp(self.log_kmin + self.log_krange * _sigmoid(z + self.kernel_z0))
 
     def eval_geometry_field(self, z) -> FieldSample:
         """sdf and s at field-space points (the world for a bounded field)."""
-        _, raw = self._raw(z)
+        _, raw, _ = self._raw(z)
         return FieldSample(sdf=raw[0], s=self._kernel(raw[1]), normal=None, rgb=None)
 
     def eval_geometry(self, x) -> FieldSample:
         """sdf and s only (no normal, no colour) at world points."""
-        z = x if self.similarity is None else self._to_field(x)[0]
+        z = x if self.similarity is None else contract_point(x, *self._ball)[0]
         return self.eval_geometry_field(z)
 
     def eval(self, x, d) -> FieldSample:
@@ -135,8 +142,8 @@ class DrJitField:
         if self.similarity is None:
             z = x
         else:
-            z, u, r = self._to_field(x)
-        xn, raw = self._raw(z)
+            z, u, r = contract_point(x, *self._ball)
+        xn, raw, on = self._raw(z)
         G = self.geo_dim
         feat = raw[2:2 + G]
         n = self.Array3f(*raw[2 + G:])
@@ -144,8 +151,7 @@ class DrJitField:
         slope = n
         if self.similarity is not None:
             y = self._unit(z)
-            on_dome = raw[0] == self._dome(z)
-            n = dr.select(on_dome, -y * dr.rcp(dr.maximum(dr.norm(y), 1e-12)), n)
+            n = dr.select(on, -y * dr.rcp(dr.maximum(dr.norm(y), 1e-12)), n)
             rr = dr.maximum(r, 1.0)
             uh = u * dr.rcp(rr)
             a = (2.0 - dr.rcp(rr)) * dr.rcp(rr)

@@ -141,7 +141,9 @@ class ShellField(nn.Module):
 
     def _geo_raw(self, z: torch.Tensor,  # [N, 3] field space (the world for bounded fields)
                  far: bool = True,  # False: the network alone, without the far solid
-                 ) -> tuple[torch.Tensor, torch.Tensor]:  # x_n [N, 3], raw outputs [N, 2+G+3]
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """x_n [N, 3], raw outputs [N, 2+G+3], and where the far solid is the surface [N]
+        (None when it is not applied)."""
         if z.ndim != 2 or z.shape[1] != 3:
             raise InputError(f"ShellField: points must be [N, 3], got {tuple(z.shape)}")
         xn = self.normalize(z)
@@ -151,39 +153,45 @@ class ShellField(nn.Module):
             mask = (torch.arange(L * Fl, device=z.device) < self.active_levels * Fl)
             feats = feats * mask.to(feats.dtype)
         raw = self.geo_mlp(torch.cat([xn, feats], dim=1))
-        if self.similarity is not None and far:  # the solid far background: min(f_net, dome)
-            dome = self._dome(z)
-            on = dome < raw[:, 0]
-            f = torch.where(on, dome, raw[:, 0])
-            k = torch.where(on, torch.full_like(dome, self.dome_logit), raw[:, 1])
-            raw = torch.cat([f[:, None], k[:, None], raw[:, 2:]], dim=1)
-        return xn, raw
+        if self.similarity is None or not far:
+            return xn, raw, None
+        dome = self._dome(z)  # the solid far background: min(f_net, dome)
+        on = dome < raw[:, 0]
+        f = torch.where(on, dome, raw[:, 0])
+        k = torch.where(on, torch.full_like(dome, self.dome_logit), raw[:, 1])
+        return xn, torch.cat([f[:, None], k[:, None], raw[:, 2:]], dim=1), on
 
     def _dome(self, z: torch.Tensor) -> torch.Tensor:  # [N, 3] field space -> [N]
         """radius (far_radius - |y|), y = (z - centre) / radius: > 0 inside the far sphere."""
         y = self.similarity.to_unit(z)
         return self.similarity.radius * (self.cfg.far_radius - torch.linalg.vector_norm(y, dim=-1))
 
+    @property
+    def far_radius(self) -> float:
+        return float(self.cfg.far_radius)
+
+    def _contract(self, x: torch.Tensor  # [N, 3] world, unbounded field
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """z = W(x) [N, 3] (x itself inside the ball), u = (x - centre) / radius, |u| [N, 1]."""
+        u = self.similarity.to_unit(x)
+        r = torch.linalg.vector_norm(u, dim=-1, keepdim=True)
+        return torch.where(r > 1.0, self.similarity.to_world(contract(u)), x), u, r
+
     def to_field(self, x: torch.Tensor) -> torch.Tensor:  # [N, 3] world -> field space
         """W(x) = centre + radius c((x - centre) / radius); the identity for bounded fields."""
-        if self.similarity is None:
-            return x
-        u = self.similarity.to_unit(x)
-        far = torch.linalg.vector_norm(u, dim=-1, keepdim=True) > 1.0
-        return torch.where(far, self.similarity.to_world(contract(u)), x)  # x itself inside
+        return x if self.similarity is None else self._contract(x)[0]
 
     def geometry_field(self, z: torch.Tensor,  # [N, 3] field space
                        far: bool = True,  # False: the network alone (the regularisers)
                        ) -> dict[str, torch.Tensor]:
         """sdf [N], s [N], feat [N, G], normal [N, 3] (unit, field space), xn [N, 3]."""
-        xn, raw = self._geo_raw(z, far)
+        xn, raw, on = self._geo_raw(z, far)
         G = self.cfg.geo_feature_dim
         normal = F.normalize(raw[:, 2 + G:], dim=1, eps=NORMAL_EPS)
-        if self.similarity is not None and far:  # the far sphere's normal where it is the surface
+        if on is not None:  # the far sphere's normal where it is the surface
             y = self.similarity.to_unit(z)
             inward = -y / torch.linalg.vector_norm(y, dim=-1, keepdim=True).clamp_min(1e-12)
-            on_dome = (raw[:, 0] == self._dome(z))[:, None]
-            normal = torch.where(on_dome, inward, normal)
+            normal = torch.where(on[:, None], inward, normal)
         return dict(sdf=raw[:, 0], s=self.kernel_from_logit(raw[:, 1]), feat=raw[:, 2:2 + G],
                     normal=normal, xn=xn)
 
@@ -195,11 +203,10 @@ class ShellField(nn.Module):
             geo = self.geometry_field(x)
             geo["n_unit"] = geo["normal"]
             return geo
-        geo = self.geometry_field(self.to_field(x))
+        z, u, r = self._contract(x)
+        geo = self.geometry_field(z)
         n = geo["normal"]
         geo["n_unit"] = n
-        u = self.similarity.to_unit(x)
-        r = torch.linalg.vector_norm(u, dim=-1, keepdim=True)
         far = r > 1.0
         rr = r.clamp_min(1.0)
         uh = u / rr

@@ -71,6 +71,7 @@ import torch
 
 from shells.config import RenderConfig
 from shells.errors import InputError
+from shells.fields.drjit_field import contract_point
 from shells.fields.neus import may_have_density
 from shells.levelset.grid import check_aabb
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
@@ -228,7 +229,8 @@ def _march_warped(o: Any, d: Any,  # mi.Point3f / mi.Vector3f [Ra] live rays (wo
                   tb: Any,  # mi.Float [Ra] each ray's t_b (shells.render.warp)
                   n_steps: Any, j: Any,  # mi.UInt32 [Ra] steps in s, next step index
                   occ: Any, lo: Any, inv_cell: Any,  # grid over the field-space box
-                  N: int, ds: float, K: int, centre: Any, radius: float,
+                  N: int, ds: float, K: int, centre: tuple[float, float, float],
+                  radius: float,
                   s_out: Any,  # mi.Float [Ra * K] written: sample parameters s
                   ) -> tuple[Any, Any]:  # samples written [Ra], next step index [Ra]
     """Collect up to K occupied steps per ray from step j on, in s, looking up each step's
@@ -238,10 +240,7 @@ def _march_warped(o: Any, d: Any,  # mi.Point3f / mi.Vector3f [Ra] live rays (wo
     last = float(N - 1)
     while dr.hint((n < K) & (j < n_steps), max_iterations=-1, label="occ_march_warped"):
         s = (mi.Float(j) + 0.5) * ds
-        x = dr.fma(d, t_of_s(s, tb), o)
-        u = (x - centre) / radius
-        r = dr.norm(u)
-        z = dr.fma(u * dr.select(r > 1.0, (2.0 - dr.rcp(r)) * dr.rcp(r), 1.0), radius, centre)
+        z = contract_point(dr.fma(d, t_of_s(s, tb), o), centre, radius)[0]
         ci = mi.Vector3u(dr.clip(dr.floor((z - lo) * inv_cell), 0.0, last))
         if dr.gather(mi.Bool, occ, (ci.x * N + ci.y) * N + ci.z):
             dr.scatter(s_out, s, base + n)
@@ -310,7 +309,7 @@ def render_occupancy(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
             n, j = _march(ro, rd, t0, ns, j, grid.occ, lo, inv_cell, cell, N, dt, K, t_pad)
         else:
             n, j = _march_warped(ro, rd, t0, ns, j, grid.occ, lo, inv_cell, N, dt, K,
-                                 mi.Point3f(*warp[0]), warp[1], t_pad)
+                                 warp[0], warp[1], t_pad)
         dr.eval(t_pad, n, j)
         slot = dr.arange(mi.UInt32, Ra * K)
         idx = dr.compress((slot % K) < dr.repeat(n, K))  # [M] valid slots, ray-major

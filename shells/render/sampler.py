@@ -101,9 +101,7 @@ def field_warp(field: Any) -> Warp | None:
     sim = getattr(field, "similarity", None)
     if sim is None:
         return None
-    far = getattr(field, "far_radius", None)
-    far = field.cfg.far_radius if far is None else far
-    return (tuple(sim.centre), float(sim.radius), float(far))
+    return (tuple(sim.centre), float(sim.radius), float(field.far_radius))
 
 
 def _warped_ends(iv: Intervals, o: Any, d: Any, warp: Warp | None) -> tuple[Any, Any, Any]:
