@@ -106,3 +106,28 @@ def test_bad_ratio():
     outer, inner = shells_of(f, 0.06, 0.06)
     with pytest.raises(InputError, match="--ratio"):
         make_lod(outer, inner, 1.0, BOX[0], H, LodParams())
+
+
+def test_check_names_the_vertices_where_an_inner_shell_fails():
+    """`_check` (what `lod_inner` locks before it decimates again): a coarse inner sphere of
+    radius 0.8 inside a fine one of radius 1 passes with no vertex named; pushed out to 1.2,
+    one coarse vertex is named (with the vertices of its faces, which now cross), and the
+    fine vertices its spike swallows are named too; everything else is not."""
+    import trimesh
+
+    from shells.levelset.lod import _check
+
+    fine = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    coarse = trimesh.creation.icosphere(subdivisions=2, radius=0.8)
+    S = (np.asarray(fine.vertices), np.asarray(fine.faces))
+    V, F = np.asarray(coarse.vertices).copy(), np.asarray(coarse.faces)
+    rec, bad_coarse, bad_fine = _check((V, F), S, -1)
+    assert rec["passed"] and not bad_coarse.any() and not bad_fine.any()
+    V[7] *= 1.2 / 0.8
+    rec, bad_coarse, bad_fine = _check((V, F), S, -1)
+    ring = np.unique(F[(F == 7).any(1)])  # vertex 7 and its neighbours
+    assert not rec["passed"] and bad_coarse[7]
+    assert set(np.nonzero(bad_coarse)[0]) <= set(ring.tolist())
+    swallowed = np.linalg.norm(S[0] - V[7] / np.linalg.norm(V[7]), axis=1) < 0.25
+    assert bad_fine.any() and (bad_fine <= swallowed).all()
+    assert rec["fine_vertices_ok"] == len(S[0]) - bad_fine.sum()

@@ -20,8 +20,11 @@ Construction (`make_lod`):
   meshed half a cell plus the local erosion inside them (marching cubes), then quadric
   decimation (weighted by the allowance: thin band, decimated last) brings it to
   len(M-) / ratio triangles. Decimation is the one step without a guarantee, so its result
-  is checked, and the decimation is redone with 1.5x the triangles until the check passes
-  (the undecimated voxel surface, which passes by construction, is the last resort).
+  is checked; where it failed, the voxel surface is locked (its vertices' error weight
+  raised) and the decimation redone at the same count, and only after a few such rounds with
+  1.5x the triangles, until the check passes (the undecimated voxel surface, which passes by
+  construction, is the last resort). On lego's M- one locking round takes it from 4.4x to
+  10x (BENCHMARKS.md, issue 18).
 * **The allowance**, tied to the local band (`band_allowance`): every fine vertex gets
   lambda = clamp(kappa * w, lo h, hi h), w the local band width there (the distance from an
   M+ vertex to the nearest M- vertex, and back), h the fine grid spacing; where M- is absent
@@ -64,6 +67,10 @@ class LodParams:
     lo: float = 0.25  # ... clamped to [lo h, hi h]
     hi: float = 2.0
     max_retry: int = 3  # decimations with 1.5x the triangles after a failed check
+    lock_rounds: int = 4  # C-: decimations at the same count, each after locking the
+    # places where the last one failed (their voxel vertices' error weight x lock_weight)
+    lock_weight: float = 30.0
+    lock_radius: float = 3.0  # ... the voxel vertices within this many h of a failure
 
 
 # --------------------------------------------------------------------------------------------
@@ -221,6 +228,13 @@ def decimate(V: np.ndarray, F: np.ndarray, target: int,
 def verify(C: Mesh, S: Mesh, side: int) -> dict:
     """The containment check of the module docstring for a coarse shell C and its fine shell S
     (``side`` +1: C must contain S; -1: C must lie inside S)."""
+    return _check(C, S, side)[0]
+
+
+def _check(C: Mesh, S: Mesh, side: int) -> tuple[dict, np.ndarray, np.ndarray]:
+    """`verify`'s record, and where it failed: the coarse vertices that are on the wrong side
+    or on a crossing or self-intersecting face [len(C vertices)] and the fine vertices on the
+    wrong side [len(S vertices)], as boolean masks."""
     t0 = time.perf_counter()
     fine_in = inside(*C, S[0])  # fine vertices inside C
     coarse_in = inside(*S, C[0])  # coarse vertices inside S
@@ -229,6 +243,8 @@ def verify(C: Mesh, S: Mesh, side: int) -> dict:
     union_F = np.concatenate([C[1], np.asarray(S[1]) + len(C[0])])
     crossing = self_intersecting_faces(np.concatenate([C[0], S[0]]), union_F)[:len(C[1])]
     own = self_intersecting_faces(*C)
+    bad = ~coarse_ok
+    bad[np.asarray(C[1])[crossing | own].ravel()] = True
     out = {"fine_vertices": int(len(S[0])), "fine_vertices_ok": int(fine_ok.sum()),
            "coarse_vertices": int(len(C[0])), "coarse_vertices_ok": int(coarse_ok.sum()),
            "crossing_faces": int(crossing.sum()), "self_intersecting_faces": int(own.sum()),
@@ -238,7 +254,7 @@ def verify(C: Mesh, S: Mesh, side: int) -> dict:
                             and out["crossing_faces"] == 0)
     out["passed"] = bool(out["contained"] and out["self_intersecting_faces"] == 0
                          and out["closed"])
-    return out
+    return out, bad, ~fine_ok
 
 
 # --------------------------------------------------------------------------------------------
@@ -368,7 +384,10 @@ def lod_outer(S: Mesh, lam: np.ndarray, ratio: float, h: float) -> tuple[Mesh, d
 def lod_inner(S: Mesh, lam: np.ndarray, ratio: float, origin: np.ndarray, h: float,
               p: LodParams) -> tuple[Mesh, dict]:
     """C- (module docstring): the voxel interior of S eroded by max(lam - h, 0), decimated to
-    len(S faces) / ratio triangles, 1.5x more after each failed check."""
+    len(S faces) / ratio triangles. After a failed check the places where it failed are locked
+    (the error weight of the voxel vertices within ``lock_radius`` h of a failing vertex, coarse
+    or fine, times ``lock_weight``) and the decimation is redone at the same count, up to
+    ``lock_rounds`` times; then with 1.5x the triangles, up to ``max_retry`` times."""
     target = max(int(len(S[1]) / ratio), 8)
     t0 = time.perf_counter()
     voxel = voxel_interior(*S, origin, h, depth=np.maximum(lam - h, 0.0))
@@ -380,18 +399,28 @@ def lod_inner(S: Mesh, lam: np.ndarray, ratio: float, origin: np.ndarray, h: flo
         return voxel, info
     _, near = cKDTree(S[0]).query(voxel[0])
     quality = (p.hi * h / lam[near]) ** 2
+    voxel_tree = cKDTree(voxel[0])
     for _ in range(p.max_retry + 1):
         if target >= len(voxel[1]):
             break
-        t0 = time.perf_counter()
-        C = decimate(*voxel, target, quality)
-        check = verify(C, S, -1)
-        info["decimations"].append({"target": target, "triangles": int(len(C[1])),
-                                    "passed": check["passed"],
-                                    "seconds": time.perf_counter() - t0})
-        if check["passed"]:
-            info["check"] = check
-            return C, info
+        weight = quality.copy()
+        for _ in range(p.lock_rounds + 1):
+            t0 = time.perf_counter()
+            C = decimate(*voxel, target, weight)
+            check, bad_coarse, bad_fine = _check(C, S, -1)
+            info["decimations"].append({"target": target, "triangles": int(len(C[1])),
+                                        "passed": check["passed"],
+                                        "failing_vertices": int(bad_coarse.sum()
+                                                                + bad_fine.sum()),
+                                        "seconds": time.perf_counter() - t0})
+            if check["passed"]:
+                info["check"] = check
+                return C, info
+            where = np.concatenate([C[0][bad_coarse], S[0][bad_fine]])
+            near_failure = voxel_tree.query_ball_point(where, p.lock_radius * h)
+            locked = np.unique(np.concatenate([np.asarray(i, np.int64) for i in near_failure]
+                                              + [np.zeros(0, np.int64)]))
+            weight[locked] *= p.lock_weight
         target = int(target * 1.5)
     check = verify(voxel, S, -1)
     if not check["passed"]:
