@@ -66,15 +66,14 @@ def chord_deviation(mesh: trimesh.Trimesh, world: np.ndarray, sim: Similarity,
     e = mesh.edges_unique
     if len(e) == 0:
         return np.zeros(0)
+    zm = 0.5 * (mesh.vertices[e[:, 0]] + mesh.vertices[e[:, 1]])
+    wm = 0.5 * (world[e[:, 0]] + world[e[:, 1]])
+    dev = np.linalg.norm(_to_field(wm, sim) - zm, axis=1)
     if far is not None:
         y = np.linalg.norm((np.asarray(mesh.vertices) - np.asarray(sim.centre)) / sim.radius,
                            axis=1)
-        e = e[(y[e[:, 0]] <= far) | (y[e[:, 1]] <= far)]
-        if len(e) == 0:
-            return np.zeros(1)
-    zm = 0.5 * (mesh.vertices[e[:, 0]] + mesh.vertices[e[:, 1]])
-    wm = 0.5 * (world[e[:, 0]] + world[e[:, 1]])
-    return np.linalg.norm(_to_field(wm, sim) - zm, axis=1)
+        dev[(y[e[:, 0]] > far) & (y[e[:, 1]] > far)] = 0.0
+    return dev
 
 
 def to_world(mesh: trimesh.Trimesh,  # field-space shell (vertices z)

@@ -17,9 +17,9 @@ occupancy-grid march, the full-ray baseline), and a sample's section [s - a, s +
 the world section [t(s - a), t(s + b)] (so sections that tile an interval in s tile it in t).
 
 Rays start at t_near (`ray_span`) and end at t_far = R (|o_unit| + 1 / (2 - rho_end)),
-rho_end = (far_radius + 2) / 2: the point
-there is past the contracted radius rho_end, beyond the solid far sphere of the field
-(`ShellField`, cfg.far_radius), so every ray's samples reach the far background.
+rho_end = (far_radius + 2) / 2: the point there is past the contracted radius rho_end, beyond
+the solid far sphere of the field (`ShellField`, cfg.far_radius), so every ray's samples
+reach the far background.
 
 The functions take torch tensors (stage 1) or Dr.Jit arrays (the renderers) and use the
 matching math; shapes broadcast as the caller arranges them.
