@@ -631,8 +631,8 @@ def lod_parser() -> argparse.ArgumentParser:
     p.add_argument("--ratio", type=float, default=10.0,
                    help="fine triangles per coarse triangle, each shell (default 10)")
     p.add_argument("--kappa", type=float, default=None,
-                   help="allowed looseness as a share of the local band width (default 0.1; "
-                        "clamped to 0.25..2 grid cells)")
+                   help="offset of the alpha-wrap fallback for the outer shell, as a share of "
+                        "the local band width (default 0.1; clamped to 0.25..2 grid cells)")
     p.add_argument("--parity-rays", type=int, default=100_000,
                    help="random rays of the enter/exit parity check (default 100000)")
     return p

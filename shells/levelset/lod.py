@@ -6,41 +6,42 @@ the fine band holds is cut: a ray enters C+ no later than M+ and stops at C- no 
 at M-. Every coarse shell is checked (`verify`) before it is returned; a failed check is an
 InputError, never a written file.
 
-Construction (`make_lod`):
+Construction (`make_lod`), the same for both shells (`offset_lod`):
 
-* **C+ = alpha wrap of M+** (CGAL's 3D alpha wrap through pymeshlab): closed, 2-manifold and
-  free of self-intersections by construction, and strictly containing its input, at distance
-  ``offset`` outside it. The offset is the allowance of the thinnest bands (its 5th percentile
-  over M+, see below), so the wrap is tight where the band is thin; ``alpha`` (the carving
-  ball) is searched so that the wrap has at most len(M+) / ratio triangles; concavities
-  narrower than alpha are filled, which only widens the band there.
-* **C- = a conservative voxel interior of M-, eroded by the allowance, re-meshed and
-  decimated** (`voxel_interior`, `decimate`): the grid cells that M- does not touch and a
-  flood fill from outside does not reach are strictly inside M-; their signed distance is
-  meshed half a cell plus the local erosion inside them (marching cubes), then quadric
-  decimation (weighted by the allowance: thin band, decimated last) brings it to
-  len(M-) / ratio triangles. Decimation is the one step without a guarantee, so its result
-  is checked; where it failed, the voxel surface is locked (its vertices' error weight
-  raised) and the decimation redone at the same count, and only after a few such rounds with
-  1.5x the triangles, until the check passes (the undecimated voxel surface, which passes by
-  construction, is the last resort). On lego's M- one locking round takes it from 4.4x to
-  10x (BENCHMARKS.md, issue 18).
-* **The allowance**, tied to the local band (`band_allowance`): every fine vertex gets
-  lambda = clamp(kappa * w, lo h, hi h), w the local band width there (the distance from an
-  M+ vertex to the nearest M- vertex, and back), h the fine grid spacing; where M- is absent
-  (thin parts) w is capped. The inner erosion below the wall of touched cells is
-  max(lambda - h, 0) per cell, the outer offset the 5th percentile of lambda: thin band,
-  tight; wide band, loose.
+* **An offset of the fine shell** (`offset_surface`): marching cubes of the exact signed
+  distance to it (libigl) on the fine grid, at 0.2 h outside M+ (C+) or 0.3 h inside M- (C-),
+  h the fine grid spacing. Where the grid undersamples the shell (edges, thin parts) the
+  offset can stray to the wrong side; there it is made deeper, locally, until it passes the
+  check. It keeps thin parts of M- down to about 0.6 h, which rays would otherwise cross to
+  the back of M+.
+* **Decimated in checked stages** (`decimate_staged`): quadric decimation down to
+  len(fine) / ratio triangles in halving stages. Decimation is the one step without a
+  guarantee, so every stage's result is checked; where a stage failed, the faces of its
+  (valid) input near the failures are kept as they were and the stage is redone, until it
+  passes (a stage that never does ends the descent at the last valid mesh).
+* **Farther if needed**: when the descent stops above 1.2x the target, it starts again from
+  an offset twice as far (more room for the decimation), up to three offsets. For C+ the
+  last resort is **the alpha wrap of M+** (`wrap_outer`: CGAL's 3D alpha wrap through
+  pymeshlab, closed and containing by construction, at the allowance of the thinnest bands,
+  ``kappa`` x the local band width, `band_allowance`), whose filled concavities cost more
+  band samples.
+
+Why offsets: the band renderer's samples grow with the distance between the coarse and the
+fine shell and with every thin part left out (an interval of width w takes
+ceil((w - w_s) / delta_s) + 1 samples). On lego at 1/8 the earlier voxel interior of M-
+(0.97 h deep, thin parts dropped) took 29 % more samples than M- in a stage-1 band render,
+the 0.3 h offset 11.8 %; the alpha wrap of M+ 6.5 %, the 0.2 h offset 3.5 %
+(`bench/lod_shell_cost.py`, BENCHMARKS.md, issue 18).
 
 `verify` (both shells): every fine vertex inside C+ (outside C-) and every coarse vertex
-outside M+ (inside M-) by ray-parity inside tests along three directions (`inside`); no
+outside M+ (inside M-) by winding numbers (`inside`, libigl; exact near the surface); no
 triangle of the coarse shell crosses one of the fine shell or another of its own (MeshLab's
 self-intersection test on their union and on the coarse shell alone); every edge in two
 faces, in opposite directions. Right-side vertices and no crossing surfaces together imply
 containment: closed surfaces that do not meet lie wholly on one side of each other.
 
 Conventions as in `shells.levelset.mesh`: world units, outward-facing triangles (volume > 0).
-pymeshlab is GPL-3.0; it is imported only here, when a LOD is made.
+pymeshlab (GPL-3.0) and libigl (MPL-2.0) are imported only here, when a LOD is made.
 """
 
 from __future__ import annotations
@@ -61,25 +62,28 @@ Mesh = tuple[np.ndarray, np.ndarray]  # V [n, 3] float, F [m, 3] int, outward fa
 
 @dataclass
 class LodParams:
-    """The allowance (lo, hi: multiples of the fine grid spacing h) and the retries."""
+    """The offsets the coarse shells start from and the repair rounds (in fine grid cells h),
+    and the allowance of the alpha-wrap fallback for C+ (lo, hi: multiples of h)."""
 
-    kappa: float = 0.1  # allowance = kappa * local band width ...
+    kappa: float = 0.1  # alpha wrap (C+ fallback): offset = kappa * local band width ...
     lo: float = 0.25  # ... clamped to [lo h, hi h]
     hi: float = 2.0
-    max_retry: int = 3  # decimations with 1.5x the triangles after a failed check
-    lock_rounds: int = 4  # C-: decimations at the same count, each after locking the
-    # places where the last one failed (their voxel vertices' error weight x lock_weight)
-    lock_weight: float = 30.0
-    lock_radius: float = 3.0  # ... the voxel vertices within this many h of a failure
+    outer_offset: float = 0.2  # C+: the offset of M+ it starts from, in h (on lego, from
+    # 0.175 h the decimation stops at 8.0x)
+    inner_depth: float = 0.3  # C-: the offset of M- it starts from, in h (on lego, from
+    # 0.275 h it stops at 4.9x; 0.4 h loses more thin parts: BENCHMARKS.md, issue 18)
+    offset_tries: int = 3  # offsets tried, each offset_growth times farther than the last,
+    offset_growth: float = 2.0  # while the decimation stops short of the ratio
+    deepen: float = 0.25  # where an offset fails its check: this much deeper (h) ...
+    deepen_rounds: int = 12  # ... for up to this many rounds
+    lock_radius: float = 1.0  # decimation: after a failed check, the input faces within
+    # this many h of a failure are kept as they were ...
+    lock_rounds: int = 20  # ... for up to this many rounds per stage
 
 
 # --------------------------------------------------------------------------------------------
-# Inside tests and ray parity (Mitsuba / Embree)
+# Inside tests (libigl winding numbers) and ray parity (Mitsuba / Embree)
 # --------------------------------------------------------------------------------------------
-
-DIRECTIONS = np.array([[0.5773, 0.5774, 0.5773], [-0.8017, 0.2673, 0.5345],
-                       [0.2357, -0.9428, 0.2357]])  # three irrational-ish, unrelated axes
-
 
 def _scene(V: np.ndarray, F: np.ndarray) -> Any:
     import mitsuba as mi
@@ -135,18 +139,32 @@ def crossings(V: np.ndarray, F: np.ndarray, o: np.ndarray,  # [R, 3] origins
     return count, ok
 
 
-def inside(V: np.ndarray, F: np.ndarray, points: np.ndarray,  # [N, 3]
-           scene: Any = None) -> np.ndarray:  # [N] bool
-    """Point-in-solid test of a closed mesh: odd number of crossings along a ray, decided by
-    the majority of three unrelated directions (a ray grazing an edge or vertex is outvoted)."""
-    scene = scene if scene is not None else _scene(V, F)
-    points = np.asarray(points, np.float64)
-    votes = np.zeros(len(points), np.int64)
-    for d in DIRECTIONS:
-        c, _ = crossings(V, F, points, np.broadcast_to(d / np.linalg.norm(d), points.shape),
-                         scene=scene)
-        votes += c % 2
-    return votes >= 2
+def winding_numbers(V: np.ndarray, F: np.ndarray, points: np.ndarray,  # [N, 3]
+                    exact_within: float = 0.3) -> np.ndarray:  # [N]
+    """Generalised winding numbers of the closed mesh (V, F) at ``points`` (libigl): 1 inside,
+    0 outside. The fast hierarchical approximation (Barill et al. 2018) everywhere, replaced
+    by the exact sum of solid angles where it is within ``exact_within`` of 1/2 (points very
+    near the surface, where the approximation could decide the side wrongly)."""
+    import igl
+
+    V64 = np.ascontiguousarray(V, np.float64)
+    F64 = np.ascontiguousarray(F, np.int64)
+    Q = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+    if len(Q) == 0 or len(F64) == 0:
+        return np.zeros(len(Q))
+    w = igl.fast_winding_number(V64, F64, Q)
+    near = np.flatnonzero(np.abs(w - 0.5) < exact_within)
+    if len(near):
+        w[near] = igl.winding_number(V64, F64, np.ascontiguousarray(Q[near]))
+    return w
+
+
+def inside(V: np.ndarray, F: np.ndarray, points: np.ndarray  # [N, 3]
+           ) -> np.ndarray:  # [N] bool
+    """Point-in-solid test of a closed mesh: winding number above 1/2 (`winding_numbers`).
+    Unlike ray parity it does not depend on rays missing edges and vertices, which rays from
+    the grid-aligned points of marching-cubes meshes do often enough to matter."""
+    return winding_numbers(V, F, points) > 0.5
 
 
 def parity_check(V: np.ndarray, F: np.ndarray, n_rays: int, box: np.ndarray,
@@ -170,25 +188,24 @@ def parity_check(V: np.ndarray, F: np.ndarray, n_rays: int, box: np.ndarray,
 # MeshLab helpers
 # --------------------------------------------------------------------------------------------
 
-def _ms(*meshes: Mesh, quality: np.ndarray | None = None) -> Any:
+def _ms(*meshes: Mesh) -> Any:
     import pymeshlab as ml
 
     ms = ml.MeshSet()
-    for k, (V, F) in enumerate(meshes):
-        kw = {"v_scalar_array": np.asarray(quality, np.float64)} if (k == 0 and
-                                                                     quality is not None) else {}
-        ms.add_mesh(ml.Mesh(np.asarray(V, np.float64), np.asarray(F, np.int32), **kw))
+    for V, F in meshes:
+        ms.add_mesh(ml.Mesh(np.asarray(V, np.float64), np.asarray(F, np.int32)))
     return ms
 
 
 def signed_distance(points: Mesh, ref: Mesh) -> np.ndarray:  # [n] > 0 outside ref
-    """Signed distance of the vertices of ``points`` to the surface ``ref`` (MeshLab: nearest
-    point on ref, sign from its face normal; > 0 outside, as f)."""
-    ms = _ms(points, ref)
-    ms.compute_scalar_by_distance_from_another_mesh_per_vertex(measuremesh=0, refmesh=1,
-                                                               signeddist=True)
-    ms.set_current_mesh(0)
-    return ms.current_mesh().vertex_scalar_array().copy()
+    """Signed distance of the vertices of ``points`` to the closed surface ``ref`` (libigl:
+    distance to the nearest point of ref, sign from the winding number; > 0 outside, as f)."""
+    import igl
+
+    sd, _, _, _ = igl.signed_distance(
+        np.ascontiguousarray(points[0], np.float64), np.ascontiguousarray(ref[0], np.float64),
+        np.ascontiguousarray(ref[1], np.int64), sign_type=igl.SIGNED_DISTANCE_TYPE_WINDING_NUMBER)
+    return np.asarray(sd)
 
 
 def self_intersecting_faces(V: np.ndarray, F: np.ndarray) -> np.ndarray:  # [m] bool
@@ -209,14 +226,19 @@ def is_closed(F: np.ndarray) -> bool:
 
 
 def decimate(V: np.ndarray, F: np.ndarray, target: int,
-             quality: np.ndarray | None = None) -> Mesh:
-    """Quadric edge collapse to about ``target`` faces, topology kept; ``quality`` [n]: per
-    vertex error amplification (collapsed last where high)."""
-    ms = _ms((V, F), quality=quality)
+             keep: np.ndarray | None = None) -> Mesh:
+    """Quadric edge collapse to about ``target`` faces, topology kept; ``keep`` [m] bool: faces
+    left as they are (with their vertices; MeshLab's decimation of the selected faces only)."""
+    import pymeshlab as ml
+
+    ms = ml.MeshSet()
+    kw = {} if keep is None else {"f_scalar_array": (~keep).astype(np.float64)}
+    ms.add_mesh(ml.Mesh(np.asarray(V, np.float64), np.asarray(F, np.int32), **kw))
+    if keep is not None:
+        ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
     ms.meshing_decimation_quadric_edge_collapse(
         targetfacenum=int(target), preservetopology=True, preservenormal=True,
-        optimalplacement=True, planarquadric=True, qualityweight=quality is not None,
-        autoclean=True)
+        optimalplacement=True, planarquadric=True, autoclean=True, selected=keep is not None)
     m = ms.current_mesh()
     Vc, Fc = m.vertex_matrix(), m.face_matrix()
     used = np.unique(Fc)
@@ -277,60 +299,154 @@ def alpha_wrap(V: np.ndarray, F: np.ndarray, alpha: float, offset: float) -> Mes
     return Vc, Fc
 
 
-def voxel_interior(V: np.ndarray, F: np.ndarray, origin: np.ndarray, h: float,
-                   depth: np.ndarray | None = None) -> Mesh:
-    """A closed surface strictly inside the closed mesh (V, F) (``depth`` [n]: extra erosion per
-    vertex of it, world units), from the cells of the grid
-    (``origin``, spacing ``h``) that it does not touch.
+def _triangles_meet_cells(tri: np.ndarray,  # [n, 3, 3] triangles, in cell units
+                          cells: np.ndarray,  # [n, 3] int: one cell (its lower corner) each
+                          grow: float) -> np.ndarray:  # [n] bool
+    """Exact overlap of each triangle with its unit cell grown by ``grow`` on every side: the
+    separating-axis test of Akenine-Moller (2001) on the cell's three axes, the triangle's
+    normal and the nine cross products of the axes with its edges."""
+    e = 0.5 + grow
+    v = tri - (cells + 0.5)[:, None, :]
+    f = v[:, [1, 2, 0]] - v  # [n, 3 edges, 3]
+    meet = (v.min(1) <= e).all(1) & (v.max(1) >= -e).all(1)
+    n = np.cross(f[:, 0], f[:, 1])
+    meet &= np.abs(np.einsum("ij,ij->i", n, v[:, 0])) <= e * np.abs(n).sum(1)
+    for k in range(3):
+        for j in range(3):
+            axis = np.cross(np.eye(3)[k], f[:, j])  # [n, 3]
+            proj = np.einsum("nij,nj->ni", v, axis)
+            r = e * np.abs(axis).sum(1)
+            meet &= (proj.min(1) <= r) & (proj.max(1) >= -r)
+    return meet
 
-    The cells holding a point of a triangle (its vertices, edge midpoints and centroid, each
-    marked in every cell whose closure holds it: for a marching-cubes mesh on this grid, whose
-    triangles each lie in one cell, that is exactly the cells the surface meets) form a wall;
-    a 6-connected flood fill from outside the box cannot cross it; the cells neither reached
-    nor touched are strictly inside. Their signed distance (cell units, > 0 outside) is meshed
-    at -0.5 - depth (per cell, from its nearest vertex: the erosion below the wall) by marching
-    cubes over the cell centres, so the surface stays half a cell inside the interior cells.
-    A part thinner than about two cells has no interior cells and is dropped (valid: any
-    subset of M-'s interior is a valid coarse M-)."""
+
+def touched_cells(V: np.ndarray, F: np.ndarray, origin: np.ndarray, cell: float,
+                  lo: np.ndarray, shape: tuple[int, int, int], grow: float = 1e-3,
+                  chunk: int = 100_000) -> np.ndarray:  # bool [shape]
+    """The cells (spacing ``cell``, cell ``lo`` at index 0) that some triangle of (V, F) meets,
+    each cell grown by ``grow`` cells on every side: a conservative rasterisation (every cell
+    the surface meets is marked, exactly, whatever the size of the triangles)."""
+    touched = np.zeros(shape, bool)
+    top = np.array(shape) - 1
+    for s in range(0, len(F), chunk):
+        tri = (np.asarray(V, np.float64)[F[s:s + chunk]] - origin) / cell - lo
+        first = np.floor(tri.min(1) - grow).astype(np.int64)
+        count = np.floor(tri.max(1) + grow).astype(np.int64) - first + 1
+        for off in np.ndindex(*count.max(0)):
+            sel = np.flatnonzero((np.array(off) < count).all(1))
+            c = first[sel] + np.array(off)
+            c = np.clip(c[_triangles_meet_cells(tri[sel], c, grow)], 0, top)
+            touched[c[:, 0], c[:, 1], c[:, 2]] = True
+    return touched
+
+
+def offset_surface(S: Mesh, origin: np.ndarray, h: float, depth: float, side: int = -1,
+                   deepen: float = 0.25, rounds: int = 12) -> tuple[Mesh, dict]:
+    """A closed surface at ``depth`` (world units) inside (``side`` -1) or outside (+1) the
+    closed mesh S, checked (`_check`) to lie wholly on that side of it.
+
+    The exact signed distance to S (libigl) is taken at the nodes of the grid (``origin``,
+    spacing h) within three cells of the cells S meets (`touched_cells`); every other node
+    lies in a connected group of such nodes that does not meet S, whose side one winding
+    number decides (so a cavity of S is outside, however it is reached). Marching cubes of
+    sd - side * depth gives the surface. It can stray to the wrong side where the grid
+    undersamples S (edges, thin parts); there the offset is made ``deepen`` deeper, at the
+    nodes within 2 h of each failure, and the surface re-meshed, for up to ``rounds`` rounds
+    (parts that get too thin vanish, which keeps the surface valid). Returns the surface and a
+    record (rounds, nodes deepened)."""
+    import igl
     from scipy import ndimage
 
-    from shells.levelset.mesh import marching_cubes
+    from shells.levelset.mesh import clean_mesh, marching_cubes
 
-    lo = np.floor((V.min(0) - origin) / h).astype(int) - 2
-    hi = np.ceil((V.max(0) - origin) / h).astype(int) + 2
-    shape = tuple(hi - lo)
-    tri = V[F]
-    pts = np.concatenate([V, tri.mean(1), 0.5 * (tri[:, 0] + tri[:, 1]),
-                          0.5 * (tri[:, 1] + tri[:, 2]), 0.5 * (tri[:, 2] + tri[:, 0])])
-    u = (pts - origin) / h - lo
-    touched = np.zeros(shape, bool)
-    eps = 1e-4
-    for sx in (-eps, eps):
-        for sy in (-eps, eps):
-            for sz in (-eps, eps):
-                c = np.floor(u + np.array([sx, sy, sz])).astype(int)
-                c = np.clip(c, 0, np.array(shape) - 1)
-                touched[c[:, 0], c[:, 1], c[:, 2]] = True
-    labels, _ = ndimage.label(~touched)
-    outside = labels == labels[0, 0, 0]
-    interior = ~outside & ~touched
-    if not interior.any():
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int32)
-    sd = np.where(interior, -ndimage.distance_transform_edt(interior),
-                  ndimage.distance_transform_edt(~interior)).astype(np.float32)
-    level = np.float32(0.5)
-    if depth is not None:  # per interior cell: the erosion at the nearest fine vertex, in cells
-        cells = np.argwhere(interior)
-        _, near = cKDTree(V).query(origin + (cells + lo + 0.5) * h)
-        extra = np.zeros(shape, np.float32)
-        extra[tuple(cells.T)] = depth[near] / h
-        level = level + extra
-    g = sd + level  # < 0 deeper than `level` cells inside the interior
-    centres_box = np.stack([origin + (lo + 0.5) * h, origin + (hi - 0.5) * h])
-    mesh = marching_cubes(g, centres_box)
-    from shells.levelset.mesh import clean_mesh
-    mesh = clean_mesh(mesh)
-    return np.asarray(mesh.vertices), np.asarray(mesh.faces, np.int32)
+    cap = 2.5 * h  # the band of exact distances reaches 3 h: no farther
+    if not 0 <= depth <= cap:
+        raise ValueError(f"offset_surface: depth {depth / h:.3g} h outside [0, 2.5] h")
+    V, F = np.asarray(S[0], np.float64), np.asarray(S[1], np.int64)
+    pad = 4 + int(np.ceil(depth / h)) + 1
+    lo = np.floor((V.min(0) - origin) / h).astype(int) - pad
+    hi = np.ceil((V.max(0) - origin) / h).astype(int) + pad
+    cshape = tuple(int(x) for x in hi - lo)
+    shape = tuple(int(x) + 1 for x in hi - lo)  # nodes
+    near = ndimage.binary_dilation(touched_cells(V, F, origin, h, lo, cshape), iterations=3)
+    band = np.zeros(shape, bool)  # the nodes of those cells
+    for off in np.ndindex(2, 2, 2):
+        band[off[0]:off[0] + cshape[0], off[1]:off[1] + cshape[1],
+             off[2]:off[2] + cshape[2]] |= near
+    nodes = np.argwhere(band)
+    P = origin + (nodes + lo) * h
+    sd, _, _, _ = igl.signed_distance(P, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+    labels, n = ndimage.label(~band)
+    first = ndimage.minimum(np.arange(labels.size).reshape(shape), labels, np.arange(1, n + 1))
+    reps = np.stack(np.unravel_index(np.asarray(first, np.int64), shape), 1)
+    solid = np.concatenate([[False], inside(V, F, origin + (reps + lo) * h)])
+    g = np.where(solid[labels], -3.0 * h, 3.0 * h)  # beyond the band: its side, far from S
+    del labels
+    d = np.full(len(P), float(depth))
+    box = np.stack([origin + lo * h, origin + hi * h])
+    tree = cKDTree(P)
+    info: dict[str, Any] = {"depth": float(depth), "band_nodes": int(len(P)), "rounds": []}
+    for _ in range(rounds + 1):
+        g[tuple(nodes.T)] = sd - side * d
+        m = clean_mesh(marching_cubes(g.astype(np.float32), box))
+        C = (np.asarray(m.vertices), np.asarray(m.faces, np.int32))
+        if len(C[1]) == 0:
+            info["check"] = {"passed": True, "empty": True}
+            return C, info
+        check, bad_c, bad_f = _check(C, (V, F), side)
+        info["rounds"].append({"triangles": int(len(C[1])), "passed": check["passed"],
+                               "failing_vertices": int(bad_c.sum() + bad_f.sum())})
+        if check["passed"]:
+            info["check"] = check
+            return C, info
+        where = np.concatenate([C[0][bad_c], V[bad_f]])
+        k = np.unique(np.concatenate([np.asarray(i, np.int64)
+                                      for i in tree.query_ball_point(where, 2.0 * h)]
+                                     + [np.zeros(0, np.int64)]))
+        d[k] = np.minimum(d[k] + deepen * h, cap)
+    raise InputError(f"shell LOD: the offset surface failed its containment check after "
+                     f"{rounds} deeper rounds ({check}); re-extract the shells or report this")
+
+
+def decimate_staged(C: Mesh, S: Mesh, side: int, target: int, h: float, p: "LodParams"
+                    ) -> tuple[Mesh, dict]:
+    """Decimate C, which passes `_check` against S (``side``), towards ``target`` faces in
+    halving stages, every stage's result passing the check too: after a failed check the faces
+    of the stage's input within ``p.lock_radius`` h of a failure are kept as they were and the
+    stage redone with its count less the kept faces, up to ``p.lock_rounds`` times. A stage
+    that still fails ends the descent at the last valid mesh (fewer than ``ratio`` fewer
+    triangles, said in the record)."""
+    stages, t = [], len(C[1]) // 2
+    while t > target:
+        stages.append(t)
+        t //= 2
+    stages.append(target)
+    info: dict[str, Any] = {"stages": []}
+    for T in stages:
+        if T >= len(C[1]):
+            continue
+        keep = np.zeros(len(C[1]), bool)
+        centres = cKDTree(np.asarray(C[0])[np.asarray(C[1])].mean(1))
+        for r in range(p.lock_rounds + 1):
+            t0 = time.perf_counter()
+            Cn = decimate(*C, max(T - int(keep.sum()), T // 4), keep if keep.any() else None)
+            check, bad_c, bad_f = _check(Cn, S, side)
+            rec = {"target": T, "round": r, "triangles": int(len(Cn[1])),
+                   "kept": int(keep.sum()), "passed": check["passed"],
+                   "failing_vertices": int(bad_c.sum() + bad_f.sum()),
+                   "seconds": time.perf_counter() - t0}
+            info["stages"].append(rec)
+            if check["passed"]:
+                break
+            where = np.concatenate([Cn[0][bad_c], np.asarray(S[0])[bad_f]])
+            hit = centres.query_ball_point(where, p.lock_radius * h)
+            keep[np.unique(np.concatenate([np.asarray(i, np.int64) for i in hit]
+                                          + [np.zeros(0, np.int64)]))] = True
+        else:
+            info["stopped_at"] = T
+            break
+        C, info["check"] = Cn, check
+    return C, info
 
 
 def _stats(x: np.ndarray) -> dict:
@@ -359,9 +475,50 @@ def band_allowance(V: np.ndarray,  # [n, 3] vertices of one shell
     return np.clip(p.kappa * w, p.lo * h, p.hi * h)
 
 
-def lod_outer(S: Mesh, lam: np.ndarray, ratio: float, h: float) -> tuple[Mesh, dict]:
-    """C+ (module docstring): the alpha wrap of S at offset = 5th percentile of ``lam`` with the
-    smallest alpha tried that gives at most len(S faces) / ratio triangles."""
+def offset_lod(S: Mesh, side: int, ratio: float, origin: np.ndarray, h: float,
+               distance: float, p: LodParams) -> tuple[Mesh, dict]:
+    """The offset of S at ``distance`` h on ``side`` (`offset_surface`), decimated to
+    len(S faces) / ratio triangles (`decimate_staged`); where the checked descent stops above
+    1.2x that count, again from an offset ``p.offset_growth`` times farther (more room for the
+    decimation), up to ``p.offset_tries`` offsets. Returns the last try and every try's
+    record."""
+    target = max(int(len(S[1]) / ratio), 8)
+    info: dict[str, Any] = {"method": "offset (exact signed distance) + staged decimation",
+                            "target_triangles": target, "tries": []}
+    for k in range(p.offset_tries):
+        t0 = time.perf_counter()
+        d = distance * p.offset_growth ** k
+        C, off = offset_surface(S, origin, h, d * h, side, p.deepen, p.deepen_rounds)
+        rec: dict[str, Any] = {"distance_h": d, "offset": off,
+                               "offset_triangles": int(len(C[1]))}
+        info["check"] = off["check"]
+        if len(C[1]):
+            C, rec["decimation"] = decimate_staged(C, S, side, target, h, p)
+            info["check"] = rec["decimation"].get("check", off["check"])
+        rec["triangles"], rec["seconds"] = int(len(C[1])), time.perf_counter() - t0
+        info["tries"].append(rec)
+        info["distance_h"] = d
+        if len(C[1]) <= 1.2 * target:
+            break
+    return C, info
+
+
+def lod_outer(S: Mesh, lam: np.ndarray, ratio: float, origin: np.ndarray, h: float,
+              p: LodParams) -> tuple[Mesh, dict]:
+    """C+ (module docstring): `offset_lod` of S outward from ``p.outer_offset`` h; if no try
+    gets within 1.2x the triangle target, the alpha wrap of S instead (`wrap_outer`)."""
+    C, info = offset_lod(S, +1, ratio, origin, h, p.outer_offset, p)
+    if len(C[1]) <= 1.2 * info["target_triangles"]:
+        return C, info
+    C, wrap = wrap_outer(S, lam, ratio, h)
+    wrap["offset_attempt"] = info
+    return C, wrap
+
+
+def wrap_outer(S: Mesh, lam: np.ndarray, ratio: float, h: float) -> tuple[Mesh, dict]:
+    """The alpha wrap of S at offset = 5th percentile of ``lam`` with the smallest alpha tried
+    that gives at most len(S faces) / ratio triangles (closed and containing by construction,
+    but its filled concavities cost band samples: BENCHMARKS.md, issue 18)."""
     target = max(int(len(S[1]) / ratio), 8)
     offset = float(np.percentile(lam, 5))
     alpha, tries = 2.0 * h, []
@@ -381,53 +538,10 @@ def lod_outer(S: Mesh, lam: np.ndarray, ratio: float, h: float) -> tuple[Mesh, d
                "target_triangles": target, "wraps": tries, "check": check}
 
 
-def lod_inner(S: Mesh, lam: np.ndarray, ratio: float, origin: np.ndarray, h: float,
-              p: LodParams) -> tuple[Mesh, dict]:
-    """C- (module docstring): the voxel interior of S eroded by max(lam - h, 0), decimated to
-    len(S faces) / ratio triangles. After a failed check the places where it failed are locked
-    (the error weight of the voxel vertices within ``lock_radius`` h of a failing vertex, coarse
-    or fine, times ``lock_weight``) and the decimation is redone at the same count, up to
-    ``lock_rounds`` times; then with 1.5x the triangles, up to ``max_retry`` times."""
-    target = max(int(len(S[1]) / ratio), 8)
-    t0 = time.perf_counter()
-    voxel = voxel_interior(*S, origin, h, depth=np.maximum(lam - h, 0.0))
-    info: dict[str, Any] = {"method": "voxel interior + quadric decimation",
-                            "voxel_triangles": int(len(voxel[1])), "target_triangles": target,
-                            "voxel_s": time.perf_counter() - t0, "decimations": []}
-    if len(voxel[1]) == 0:
-        info["check"] = {"passed": True, "empty": True}
-        return voxel, info
-    _, near = cKDTree(S[0]).query(voxel[0])
-    quality = (p.hi * h / lam[near]) ** 2
-    voxel_tree = cKDTree(voxel[0])
-    for _ in range(p.max_retry + 1):
-        if target >= len(voxel[1]):
-            break
-        weight = quality.copy()
-        for _ in range(p.lock_rounds + 1):
-            t0 = time.perf_counter()
-            C = decimate(*voxel, target, weight)
-            check, bad_coarse, bad_fine = _check(C, S, -1)
-            info["decimations"].append({"target": target, "triangles": int(len(C[1])),
-                                        "passed": check["passed"],
-                                        "failing_vertices": int(bad_coarse.sum()
-                                                                + bad_fine.sum()),
-                                        "seconds": time.perf_counter() - t0})
-            if check["passed"]:
-                info["check"] = check
-                return C, info
-            where = np.concatenate([C[0][bad_coarse], S[0][bad_fine]])
-            near_failure = voxel_tree.query_ball_point(where, p.lock_radius * h)
-            locked = np.unique(np.concatenate([np.asarray(i, np.int64) for i in near_failure]
-                                              + [np.zeros(0, np.int64)]))
-            weight[locked] *= p.lock_weight
-        target = int(target * 1.5)
-    check = verify(voxel, S, -1)
-    if not check["passed"]:
-        raise InputError(f"inner shell LOD: the voxel interior failed its containment check "
-                         f"({check}); M- may hold a cavity: re-extract the shells")
-    info["check"] = check
-    return voxel, info
+def lod_inner(S: Mesh, ratio: float, origin: np.ndarray, h: float, p: LodParams
+              ) -> tuple[Mesh, dict]:
+    """C- (module docstring): `offset_lod` of S inward from ``p.inner_depth`` h."""
+    return offset_lod(S, -1, ratio, origin, h, p.inner_depth, p)
 
 
 def make_lod(outer: Mesh, inner: Mesh | None, ratio: float, origin: np.ndarray, h: float,
@@ -448,12 +562,11 @@ def make_lod(outer: Mesh, inner: Mesh | None, ratio: float, origin: np.ndarray, 
     stats: dict[str, Any] = {"ratio": ratio, "params": dict(vars(p)), "grid_spacing": h}
     t0 = time.perf_counter()
     lam_o = band_allowance(Vo, Vi, h, p)
-    Co, info_o = lod_outer((Vo, Fo), lam_o, ratio, h)
+    Co, info_o = lod_outer((Vo, Fo), lam_o, ratio, origin, h, p)
     stats["timings_s"] = {"outer": time.perf_counter() - t0}
     if has_inner:
         t0 = time.perf_counter()
-        lam_i = band_allowance(Vi, Vo, h, p)
-        Ci, info_i = lod_inner((Vi, Fi), lam_i, ratio, origin, h, p)
+        Ci, info_i = lod_inner((Vi, Fi), ratio, origin, h, p)
         stats["timings_s"]["inner"] = time.perf_counter() - t0
     else:
         Ci, info_i = (np.zeros((0, 3)), np.zeros((0, 3), np.int32)), {"method": "none (no M-)"}
