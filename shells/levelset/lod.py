@@ -19,6 +19,8 @@ Construction (`make_lod`), the same for both shells (`offset_lod`):
   guarantee, so every stage's result is checked; where a stage failed, the faces of its
   (valid) input near the failures are kept as they were and the stage is redone, until it
   passes (a stage that never does ends the descent at the last valid mesh).
+* **Snapped** (`snap`): the coarse vertices are moved 0.4 of their distance toward the fine
+  shell, three times. Each time, those whose faces then fail the check go back.
 * **Farther if needed**: when the descent stops above 1.2x the target, it starts again from
   an offset twice as far (more room for the decimation), up to three offsets. For C+ the
   last resort is **the alpha wrap of M+** (`wrap_outer`: CGAL's 3D alpha wrap through
@@ -31,7 +33,7 @@ fine shell and with every thin part left out (an interval of width w takes
 ceil((w - w_s) / delta_s) + 1 samples). On lego at 1/8 the earlier voxel interior of M-
 (0.97 h deep, thin parts dropped) took 29 % more samples than M- in a stage-1 band render,
 the 0.3 h offset 11.8 %; the alpha wrap of M+ 6.5 %, the 0.2 h offset 3.5 %
-(`bench/lod_shell_cost.py`, BENCHMARKS.md, issue 18).
+(`bench/lod_shell_cost.py`, before the snap; BENCHMARKS.md, issue 18).
 
 `verify` (both shells): every fine vertex inside C+ (outside C-) and every coarse vertex
 outside M+ (inside M-) by winding numbers (`inside`, libigl; exact near the surface); no
@@ -79,6 +81,9 @@ class LodParams:
     lock_radius: float = 1.0  # decimation: after a failed check, the input faces within
     # this many h of a failure are kept as they were ...
     lock_rounds: int = 20  # ... for up to this many rounds per stage
+    snap_passes: int = 3  # then the coarse vertices are moved toward the fine shell, this
+    snap_frac: float = 0.4  # share of their distance beyond snap_keep h per pass, where the
+    snap_keep: float = 0.05  # check still passes (`snap`)
 
 
 # --------------------------------------------------------------------------------------------
@@ -475,6 +480,43 @@ def band_allowance(V: np.ndarray,  # [n, 3] vertices of one shell
     return np.clip(p.kappa * w, p.lo * h, p.hi * h)
 
 
+def snap(C: Mesh, S: Mesh, side: int, h: float, p: LodParams) -> tuple[Mesh, dict]:
+    """Move the vertices of C, which passes `_check` against S (``side``), toward S: each by
+    ``p.snap_frac`` of its distance beyond ``p.snap_keep`` h, toward its nearest point of S
+    (libigl), ``p.snap_passes`` times. In each pass, the vertices of coarse faces that then
+    fail the check, and the coarse vertices within 2 h of fine vertices it names, go back to
+    where they were (with their neighbours), until the check passes (at worst all go back)."""
+    import igl
+
+    V, F = np.asarray(C[0], np.float64), np.asarray(C[1], np.int64)
+    SV, SF = np.asarray(S[0], np.float64), np.asarray(S[1], np.int64)
+    info: dict[str, Any] = {"passes": []}
+    for _ in range(p.snap_passes):
+        sd, _, near, _ = igl.signed_distance(V, SV, SF,
+                                             sign_type=igl.SIGNED_DISTANCE_TYPE_WINDING_NUMBER)
+        dist = side * sd  # > 0: on the allowed side
+        step = np.clip(p.snap_frac * (dist - p.snap_keep * h), 0.0, None) / np.maximum(dist,
+                                                                                      1e-12)
+        moved = V + (near - V) * step[:, None]
+        back = np.zeros(len(V), bool)
+        for r in range(10):
+            W = np.where(back[:, None], V, moved)
+            check, bad_c, bad_f = _check((W, F), S, side)
+            if check["passed"]:
+                break
+            bad = bad_c.copy()
+            if bad_f.any():
+                for i in cKDTree(W).query_ball_point(SV[bad_f], 2.0 * h):
+                    bad[np.asarray(i, np.int64)] = True
+            back[np.unique(F[bad[F].any(1)])] = True
+        else:
+            W, check = V, _check((V, F), S, side)[0]
+        info["passes"].append({"moved": int((~back & (step > 0)).sum()), "rounds": r + 1})
+        V = W
+    info["check"] = check if p.snap_passes else None
+    return (V, np.asarray(C[1], np.int32)), info
+
+
 def offset_lod(S: Mesh, side: int, ratio: float, origin: np.ndarray, h: float,
                distance: float, p: LodParams) -> tuple[Mesh, dict]:
     """The offset of S at ``distance`` h on ``side`` (`offset_surface`), decimated to
@@ -494,7 +536,8 @@ def offset_lod(S: Mesh, side: int, ratio: float, origin: np.ndarray, h: float,
         info["check"] = off["check"]
         if len(C[1]):
             C, rec["decimation"] = decimate_staged(C, S, side, target, h, p)
-            info["check"] = rec["decimation"].get("check", off["check"])
+            C, rec["snap"] = snap(C, S, side, h, p)
+            info["check"] = rec["snap"]["check"] or rec["decimation"].get("check", off["check"])
         rec["triangles"], rec["seconds"] = int(len(C[1])), time.perf_counter() - t0
         info["tries"].append(rec)
         info["distance_h"] = d
