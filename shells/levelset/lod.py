@@ -463,8 +463,6 @@ def _stats(x: np.ndarray) -> dict:
             "p5": float(q[0]), "p50": float(q[1]), "p95": float(q[2]), "max": float(x.max())}
 
 
-
-
 def band_allowance(V: np.ndarray,  # [n, 3] vertices of one shell
                    other: np.ndarray,  # [k, 3] vertices of the other shell (may be empty)
                    h: float, p: LodParams) -> np.ndarray:  # [n] allowance, world units
@@ -509,7 +507,8 @@ def snap(C: Mesh, S: Mesh, side: int, h: float, p: LodParams) -> tuple[Mesh, dic
                 for i in cKDTree(W).query_ball_point(SV[bad_f], 2.0 * h):
                     bad[np.asarray(i, np.int64)] = True
             back[np.unique(F[bad[F].any(1)])] = True
-        else:
+        else:  # still failing: every vertex goes back
+            back[:] = True
             W, check = V, _check((V, F), S, side)[0]
         info["passes"].append({"moved": int((~back & (step > 0)).sum()), "rounds": r + 1})
         V = W
