@@ -54,10 +54,8 @@ def voxel_interior(S: L.Mesh, origin: np.ndarray, h: float, depth: np.ndarray, s
     lo = np.floor((V.min(0) - origin) / cell).astype(int) - 2
     hi = np.ceil((V.max(0) - origin) / cell).astype(int) + 2
     shape = tuple(int(x) for x in hi - lo)
-    labels, n = ndimage.label(~L.touched_cells(V, F, origin, cell, lo, shape))
-    first = ndimage.minimum(np.arange(labels.size).reshape(shape), labels, np.arange(1, n + 1))
-    reps = np.stack(np.unravel_index(np.asarray(first, np.int64), shape), 1)
-    solid = np.concatenate([[False], L.inside(V, F, origin + (reps + lo + 0.5) * cell)])
+    labels, solid = L.solid_groups(~L.touched_cells(V, F, origin, cell, lo, shape), V, F,
+                                   lambda idx: origin + (idx + lo + 0.5) * cell)
     interior = solid[labels]
     sd = np.where(interior, -ndimage.distance_transform_edt(interior),
                   ndimage.distance_transform_edt(~interior)).astype(np.float32)

@@ -8,7 +8,7 @@ InputError, never a written file.
 
 Construction (`make_lod`), the same for both shells (`offset_lod`):
 
-* **An offset of the fine shell** (`offset_surface`): marching cubes of the exact signed
+* **An offset of the fine shell** (`DistanceGrid`): marching cubes of the exact signed
   distance to it (libigl) on the fine grid, at 0.2 h outside M+ (C+) or 0.3 h inside M- (C-),
   h the fine grid spacing. Where the grid undersamples the shell (edges, thin parts) the
   offset can stray to the wrong side; there it is made deeper, locally, until it passes the
@@ -109,8 +109,8 @@ def crossings(V: np.ndarray, F: np.ndarray, o: np.ndarray,  # [R, 3] origins
               max_hits: int = 256, scene: Any = None
               ) -> tuple[np.ndarray, np.ndarray]:  # [R] hits, [R] bool: enter/exit alternate
     """Walk every ray through the closed mesh (V, F), hit by hit: the number of surface hits
-    and whether they alternate enter, exit, enter, ... counted from the ray's origin (an origin
-    inside starts with an exit). ``scene``: a prepared `_scene(V, F)`."""
+    and whether they alternate enter, exit, enter, ... (an origin inside starts with an exit).
+    ``scene``: a prepared `_scene(V, F)`."""
     import drjit as dr
     import mitsuba as mi
 
@@ -119,7 +119,6 @@ def crossings(V: np.ndarray, F: np.ndarray, o: np.ndarray,  # [R, 3] origins
     ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]),
                    mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
     count = np.zeros(n, np.int64)
-    first_exit = np.zeros(n, bool)
     last = np.zeros(n, np.int8)  # +1 entered last, -1 exited last, 0 nothing yet
     ok = np.ones(n, bool)
     idx = np.arange(n)
@@ -132,7 +131,6 @@ def crossings(V: np.ndarray, F: np.ndarray, o: np.ndarray,  # [R, 3] origins
         sel = idx[valid]
         e = np.where(enter[valid], 1, -1).astype(np.int8)
         first = last[sel] == 0
-        first_exit[sel[first]] = e[first] < 0
         ok[sel[~first]] &= e[~first] != last[sel[~first]]  # must alternate
         last[sel] = e
         count[sel] += 1
@@ -285,7 +283,8 @@ def _check(C: Mesh, S: Mesh, side: int) -> tuple[dict, np.ndarray, np.ndarray]:
 
 
 # --------------------------------------------------------------------------------------------
-# The constructions used by `make_lod`: alpha wrap (M+) and a conservative voxel interior (M-)
+# The constructions used by `make_lod`: offsets (both shells), staged decimation, snap, and
+# the alpha wrap (C+ fallback)
 # --------------------------------------------------------------------------------------------
 
 def alpha_wrap(V: np.ndarray, F: np.ndarray, alpha: float, offset: float) -> Mesh:
@@ -345,72 +344,100 @@ def touched_cells(V: np.ndarray, F: np.ndarray, origin: np.ndarray, cell: float,
     return touched
 
 
-def offset_surface(S: Mesh, origin: np.ndarray, h: float, depth: float, side: int = -1,
-                   deepen: float = 0.25, rounds: int = 12) -> tuple[Mesh, dict]:
-    """A closed surface at ``depth`` (world units) inside (``side`` -1) or outside (+1) the
-    closed mesh S, checked (`_check`) to lie wholly on that side of it.
-
-    The exact signed distance to S (libigl) is taken at the nodes of the grid (``origin``,
-    spacing h) within three cells of the cells S meets (`touched_cells`); every other node
-    lies in a connected group of such nodes that does not meet S, whose side one winding
-    number decides (so a cavity of S is outside, however it is reached). Marching cubes of
-    sd - side * depth gives the surface. It can stray to the wrong side where the grid
-    undersamples S (edges, thin parts); there the offset is made ``deepen`` deeper, at the
-    nodes within 2 h of each failure, and the surface re-meshed, for up to ``rounds`` rounds
-    (parts that get too thin vanish, which keeps the surface valid). Returns the surface and a
-    record (rounds, nodes deepened)."""
-    import igl
+def solid_groups(free: np.ndarray,  # bool grid: cells or nodes that do not meet S
+                 V: np.ndarray, F: np.ndarray, position: Any  # index [k, 3] -> world [k, 3]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The 6-connected groups of ``free`` (labels, 0 where not free) and, per label, whether
+    the group lies inside the closed mesh (V, F): a connected set that does not meet the
+    surface lies wholly on one side of it, so one winding number (at its first element)
+    decides."""
     from scipy import ndimage
 
-    from shells.levelset.mesh import clean_mesh, marching_cubes
+    labels, n = ndimage.label(free)
+    first = ndimage.minimum(np.arange(labels.size).reshape(labels.shape), labels,
+                            np.arange(1, n + 1))
+    reps = np.stack(np.unravel_index(np.asarray(first, np.int64).reshape(-1), labels.shape), 1)
+    return labels, np.concatenate([[False], inside(V, F, position(reps))])
 
-    cap = 2.5 * h  # the band of exact distances reaches 3 h: no farther
-    if not 0 <= depth <= cap:
-        raise ValueError(f"offset_surface: depth {depth / h:.3g} h outside [0, 2.5] h")
-    V, F = np.asarray(S[0], np.float64), np.asarray(S[1], np.int64)
-    pad = 4 + int(np.ceil(depth / h)) + 1
-    lo = np.floor((V.min(0) - origin) / h).astype(int) - pad
-    hi = np.ceil((V.max(0) - origin) / h).astype(int) + pad
-    cshape = tuple(int(x) for x in hi - lo)
-    shape = tuple(int(x) + 1 for x in hi - lo)  # nodes
-    near = ndimage.binary_dilation(touched_cells(V, F, origin, h, lo, cshape), iterations=3)
-    band = np.zeros(shape, bool)  # the nodes of those cells
-    for off in np.ndindex(2, 2, 2):
-        band[off[0]:off[0] + cshape[0], off[1]:off[1] + cshape[1],
-             off[2]:off[2] + cshape[2]] |= near
-    nodes = np.argwhere(band)
-    P = origin + (nodes + lo) * h
-    sd, _, _, _ = igl.signed_distance(P, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
-    labels, n = ndimage.label(~band)
-    first = ndimage.minimum(np.arange(labels.size).reshape(shape), labels, np.arange(1, n + 1))
-    reps = np.stack(np.unravel_index(np.asarray(first, np.int64), shape), 1)
-    solid = np.concatenate([[False], inside(V, F, origin + (reps + lo) * h)])
-    g = np.where(solid[labels], -3.0 * h, 3.0 * h)  # beyond the band: its side, far from S
-    del labels
-    d = np.full(len(P), float(depth))
-    box = np.stack([origin + lo * h, origin + hi * h])
-    tree = cKDTree(P)
-    info: dict[str, Any] = {"depth": float(depth), "band_nodes": int(len(P)), "rounds": []}
-    for _ in range(rounds + 1):
-        g[tuple(nodes.T)] = sd - side * d
-        m = clean_mesh(marching_cubes(g.astype(np.float32), box))
-        C = (np.asarray(m.vertices), np.asarray(m.faces, np.int32))
-        if len(C[1]) == 0:
-            info["check"] = {"passed": True, "empty": True}
-            return C, info
-        check, bad_c, bad_f = _check(C, (V, F), side)
-        info["rounds"].append({"triangles": int(len(C[1])), "passed": check["passed"],
-                               "failing_vertices": int(bad_c.sum() + bad_f.sum())})
-        if check["passed"]:
-            info["check"] = check
-            return C, info
-        where = np.concatenate([C[0][bad_c], V[bad_f]])
-        k = np.unique(np.concatenate([np.asarray(i, np.int64)
-                                      for i in tree.query_ball_point(where, 2.0 * h)]
-                                     + [np.zeros(0, np.int64)]))
-        d[k] = np.minimum(d[k] + deepen * h, cap)
-    raise InputError(f"shell LOD: the offset surface failed its containment check after "
-                     f"{rounds} deeper rounds ({check}); re-extract the shells or report this")
+
+class DistanceGrid:
+    """The exact signed distance to a closed mesh S (libigl) at the nodes of the grid
+    (``origin``, spacing h) within three cells of the cells S meets (`touched_cells`), and
+    the side of S of every other node (`solid_groups`: so a cavity of S is outside, however
+    it is reached). Built once per shell; `offset` meshes it at any distance up to 2.5 h."""
+
+    def __init__(self, S: Mesh, origin: np.ndarray, h: float):
+        import igl
+        from scipy import ndimage
+
+        self.V, self.F = np.asarray(S[0], np.float64), np.asarray(S[1], np.int64)
+        self.h, self.cap = h, 2.5 * h  # the band of exact distances reaches 3 h: no farther
+        pad = 6  # the band reaches 4 cells past S's extent, its nodes 5: one node spare
+        self.lo = np.floor((self.V.min(0) - origin) / h).astype(int) - pad
+        hi = np.ceil((self.V.max(0) - origin) / h).astype(int) + pad
+        cshape = tuple(int(x) for x in hi - self.lo)
+        near = ndimage.binary_dilation(touched_cells(self.V, self.F, origin, h, self.lo, cshape),
+                                       iterations=3)
+        band = np.zeros(tuple(c + 1 for c in cshape), bool)  # the nodes of those cells
+        for off in np.ndindex(2, 2, 2):
+            band[off[0]:off[0] + cshape[0], off[1]:off[1] + cshape[1],
+                 off[2]:off[2] + cshape[2]] |= near
+        self.nodes = np.argwhere(band)
+        self.P = origin + (self.nodes + self.lo) * h
+        self.sd, _, _, _ = igl.signed_distance(self.P, self.V, self.F,
+                                               sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+        labels, solid = solid_groups(~band, self.V, self.F,
+                                     lambda idx: origin + (idx + self.lo) * h)
+        self.g = np.where(solid[labels], -3.0 * h, 3.0 * h)  # beyond the band: far from S
+        self.box = np.stack([origin + self.lo * h, origin + hi * h])
+        self.tree = cKDTree(self.P)
+
+    def offset(self, depth: float, side: int = -1, deepen: float = 0.25, rounds: int = 12
+               ) -> tuple[Mesh, dict]:
+        """A closed surface at ``depth`` (world units) inside (``side`` -1) or outside (+1) S,
+        checked (`_check`) to lie wholly on that side of it: marching cubes of
+        sd - side * depth. It can stray to the wrong side where the grid undersamples S
+        (edges, thin parts); there the offset is made ``deepen`` (h) deeper, at the nodes
+        within 2 h of each failure, and the surface re-meshed, for up to ``rounds`` rounds
+        (parts that get too thin vanish, which keeps the surface valid). Returns the surface
+        and a record of the rounds."""
+        from shells.levelset.mesh import clean_mesh, marching_cubes
+
+        h, V = self.h, self.V
+        if not 0 <= depth <= self.cap:
+            raise ValueError(f"offset_surface: depth {depth / h:.3g} h outside [0, 2.5] h")
+        d = np.full(len(self.P), float(depth))
+        g = self.g.copy()
+        info: dict[str, Any] = {"depth": float(depth), "band_nodes": int(len(self.P)),
+                                "rounds": []}
+        for _ in range(rounds + 1):
+            g[tuple(self.nodes.T)] = self.sd - side * d
+            m = clean_mesh(marching_cubes(g.astype(np.float32), self.box))
+            C = (np.asarray(m.vertices), np.asarray(m.faces, np.int32))
+            if len(C[1]) == 0:
+                info["check"] = {"passed": True, "empty": True}
+                return C, info
+            check, bad_c, bad_f = _check(C, (V, self.F), side)
+            info["rounds"].append({"triangles": int(len(C[1])), "passed": check["passed"],
+                                   "failing_vertices": int(bad_c.sum() + bad_f.sum())})
+            if check["passed"]:
+                info["check"] = check
+                return C, info
+            where = np.concatenate([C[0][bad_c], V[bad_f]])
+            k = np.unique(np.concatenate([np.asarray(i, np.int64)
+                                          for i in self.tree.query_ball_point(where, 2.0 * h)]
+                                         + [np.zeros(0, np.int64)]))
+            d[k] = np.minimum(d[k] + deepen * h, self.cap)
+        raise InputError(f"shell LOD: the offset surface failed its containment check after "
+                         f"{rounds} deeper rounds ({check}); re-extract the shells or report "
+                         "this")
+
+
+def offset_surface(S: Mesh, origin: np.ndarray, h: float, depth: float, side: int = -1,
+                   deepen: float = 0.25, rounds: int = 12) -> tuple[Mesh, dict]:
+    """`DistanceGrid(S, origin, h).offset(depth, side, deepen, rounds)`: a closed surface at
+    ``depth`` inside (``side`` -1) or outside (+1) the closed mesh S, checked."""
+    return DistanceGrid(S, origin, h).offset(depth, side, deepen, rounds)
 
 
 def decimate_staged(C: Mesh, S: Mesh, side: int, target: int, h: float, p: "LodParams"
@@ -518,7 +545,7 @@ def snap(C: Mesh, S: Mesh, side: int, h: float, p: LodParams) -> tuple[Mesh, dic
 
 def offset_lod(S: Mesh, side: int, ratio: float, origin: np.ndarray, h: float,
                distance: float, p: LodParams) -> tuple[Mesh, dict]:
-    """The offset of S at ``distance`` h on ``side`` (`offset_surface`), decimated to
+    """The offset of S at ``distance`` h on ``side`` (`DistanceGrid`), decimated to
     len(S faces) / ratio triangles (`decimate_staged`); where the checked descent stops above
     1.2x that count, again from an offset ``p.offset_growth`` times farther (more room for the
     decimation), up to ``p.offset_tries`` offsets. Returns the last try and every try's
@@ -526,10 +553,13 @@ def offset_lod(S: Mesh, side: int, ratio: float, origin: np.ndarray, h: float,
     target = max(int(len(S[1]) / ratio), 8)
     info: dict[str, Any] = {"method": "offset (exact signed distance) + staged decimation",
                             "target_triangles": target, "tries": []}
+    t0 = time.perf_counter()
+    grid = DistanceGrid(S, origin, h)  # once: the tries differ only in the distance
+    info["distance_grid_s"] = time.perf_counter() - t0
     for k in range(p.offset_tries):
         t0 = time.perf_counter()
         d = distance * p.offset_growth ** k
-        C, off = offset_surface(S, origin, h, d * h, side, p.deepen, p.deepen_rounds)
+        C, off = grid.offset(d * h, side, p.deepen, p.deepen_rounds)
         rec: dict[str, Any] = {"distance_h": d, "offset": off,
                                "offset_triangles": int(len(C[1]))}
         info["check"] = off["check"]
