@@ -319,7 +319,8 @@ def _extract(args: argparse.Namespace) -> int:
     if args.fixed_band is not None and not args.fixed_band > 0:
         raise InputError(f"--fixed-band {args.fixed_band}: must be > 0 world units (e.g. 0.02)")
     with _locked_run(args.run, "shells-extract"):
-        stats = extract_run(args.run, args.resolution, args.fixed_band, args.config)
+        stats = extract_run(args.run, args.resolution, args.fixed_band, args.config,
+                            progress=True)
     bw = stats.get("band_width", {})
     print(f"outer: {stats['outer_triangles']} triangles, inner: {stats['inner_triangles']} "
           f"triangles ({'empty: no interior termination' if stats['inner_empty'] else 'ok'})")
@@ -646,7 +647,7 @@ def _lod(args: argparse.Namespace) -> int:
     if args.kappa is not None and not args.kappa > 0:
         raise InputError(f"--kappa {args.kappa}: must be > 0 (e.g. 0.1)")
     with _locked_run(args.run, "shells-lod"):
-        st = lod_run(args.run, args.ratio, args.parity_rays, args.kappa)
+        st = lod_run(args.run, args.ratio, args.parity_rays, args.kappa, progress=True)
     for name in ("outer", "inner"):
         s = st[name]
         if "check" not in s:

@@ -95,6 +95,8 @@ class TrainConfig:
     eikonal_weight: float = 0.1  # Eq. 10: (|grad f| - 1)^2, finite differences
     kernel_smooth_weight: float = 0.01  # Eq. 11: |log s(x) - log s(x + N(0, eps^2))|
     normal_weight: float = 0.1  # Eq. 12: |n - grad f / |grad f||
+    normal_delay: int = 0  # steps with the normal term off, then it rises linearly to
+    normal_ramp: int = 0  # normal_weight over this many steps (0, 0: on from the start)
     smooth_eps: float = 0.01  # std of the kernel-smoothness perturbation (world units)
     fd_eps: float = 1e-3  # finite-difference step for grad f (world units)
     seed: int = 0  # RNG seed for sampling and init
@@ -350,7 +352,8 @@ _RULES = [_rule(k, *r) for k, r in [
     ("train.sampler", ((lambda v: v in ("box", "occupancy")), "must be 'box' or 'occupancy'")),
     *[(f"train.{k}", _at_least(1)) for k in ("occ_resolution", "occ_every", "reg_points",
                                             "coarse_to_fine_start")],
-    *[(f"train.{k}", _at_least(0)) for k in ("occ_k", "occ_warmup", "coarse_to_fine_iters")],
+    *[(f"train.{k}", _at_least(0)) for k in ("occ_k", "occ_warmup", "coarse_to_fine_iters",
+                                            "normal_delay", "normal_ramp")],
     ("shell.resolution", _at_least(8)),
     *[(f"shell.{k}", _at_least(0)) for k in ("steps", "dilate_curvature", "erode_curvature",
                                             "beta_d", "sigma_min", "beta_e")],

@@ -35,15 +35,16 @@ from shells.run import (RunDir, field_from_checkpoint, load_field, load_shells, 
 
 def extract_run(run_dir: str | Path, resolution: int | None = None,
                 fixed_width: float | None = None,
-                config: str | Path | None = None) -> dict[str, Any]:
+                config: str | Path | None = None, progress: bool = False) -> dict[str, Any]:
     """Sample the stage-1 field on a grid, extract M+ and M-, write RUN/shells/; returns stats.
 
     ``fixed_width`` w gives the fixed band {|f| <= w} instead of the adaptive one (ablation);
-    ``config``: a JSON file with a ``shell`` section overriding the run's shell settings.
+    ``config``: a JSON file with a ``shell`` section overriding the run's shell settings;
+    ``progress``: bars over the grid sampling and the evolutions.
     """
     run = RunDir(run_dir)
     try:
-        return _extract(run, resolution, fixed_width, config)
+        return _extract(run, resolution, fixed_width, config, progress)
     except KeyboardInterrupt:
         raise Interrupted(f"shells-extract interrupted; {run.shells} is as it was before; run "
                           "it again", status=130) from None
@@ -55,7 +56,7 @@ def extract_run(run_dir: str | Path, resolution: int | None = None,
 
 
 def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
-             config: str | Path | None) -> dict[str, Any]:
+             config: str | Path | None, progress: bool = False) -> dict[str, Any]:
     from shells.levelset.extract import extract_shells, write_shells
     from shells.levelset.grid import sample_grid_banded
 
@@ -78,11 +79,12 @@ def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
     h = float((field.aabb[1] - field.aabb[0]).max()) / (sc.resolution - 1)
     band = max(sc.dilate_zeta, sc.erode_zeta, fixed_width or 0.0) + 2.0 * h
     f, s, _, exact = sample_grid_banded(fn, field.aabb.cpu().numpy(), sc.resolution, band,
-                                        sc.chunk)
+                                        sc.chunk, progress=progress)
     t_grid = time.perf_counter() - t0
     sim = field.similarity
     shells = extract_shells(f, s, field.aabb.cpu().numpy(), sc, fixed_width=fixed_width,
-                            roi=None if sim is None else (sim.centre, sim.radius))
+                            roi=None if sim is None else (sim.centre, sim.radius),
+                            progress=progress)
     if field.similarity is not None:  # extracted in field space: the meshes back to the world
         _unbounded_to_world(shells, field)
     shells.stats["timings_s"]["sample_grid"] = t_grid
@@ -528,10 +530,11 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
 # ---------------------------------------------------------------------------------------------
 
 def lod_run(run_dir: str | Path, ratio: float = 10.0, parity_rays: int = 100_000,
-            kappa: float | None = None) -> dict[str, Any]:
+            kappa: float | None = None, progress: bool = False) -> dict[str, Any]:
     """Coarse shells of RUN/shells that contain them (`shells.levelset.lod.make_lod`), written
     to RUN/shells/lod/{outer.ply, inner.ply, stats.json} all or nothing; returns the stats
-    (triangles, file sizes, offsets used, the containment checks, ray parity)."""
+    (triangles, file sizes, offsets used, the containment checks, ray parity). ``progress``:
+    a bar over the construction's phases."""
     from shells.errors import read_json
     from shells.levelset.lod import LodParams, make_lod
     from shells.levelset.mesh import write_ply
@@ -550,7 +553,7 @@ def lod_run(run_dir: str | Path, ratio: float = 10.0, parity_rays: int = 100_000
     box, h = np.asarray(fine["aabb"], np.float64), float(min(fine["spacing"]))
     p = LodParams() if kappa is None else LodParams(kappa=kappa)
     t0 = time.perf_counter()
-    co, ci, stats = make_lod(outer, inner, ratio, box[0], h, p, parity_rays, box)
+    co, ci, stats = make_lod(outer, inner, ratio, box[0], h, p, parity_rays, box, progress)
     stats["seconds"] = time.perf_counter() - t0
     stats["shells_sha1"] = shells_digest(run)
     stats["source"] = fine.get("source")

@@ -1,7 +1,8 @@
 """Stage 1: the field trained by full-ray NeuS volume rendering and its losses (§3.1-3.2, §3.5).
 
 Loss (Eq. 8-12): L = L1 colour + w_eik (|grad f| - 1)^2 + w_smooth |log s(x) - log s(x + n)|
-+ w_normal |n(x) - grad f / |grad f||, n ~ N(0, eps^2), grad f by central differences.
++ w_normal |n(x) - grad f / |grad f||, n ~ N(0, eps^2), grad f by central differences; w_normal
+may be switched on late and ramped in (``normal_delay``, ``normal_ramp``: `normal_factor`).
 The regularisers are evaluated on a subset of the ray samples plus uniform points in the box.
 
 Sampling (`TrainConfig.sampler`): "box" samples every ray over its whole chord through the
@@ -187,12 +188,23 @@ def draw_pixels(data: Dataset, grid: SpanGrid, n_rays: int, spp: int, gen: torch
     return tuple(torch.cat(p) for p in zip(*parts))
 
 
+def normal_factor(step: int, tc: TrainConfig) -> float:
+    """Share of ``normal_weight`` at ``step``: 0 for the first ``normal_delay`` steps, then
+    rising linearly to 1 over ``normal_ramp`` steps (1 throughout with both 0)."""
+    if step < tc.normal_delay:
+        return 0.0
+    if tc.normal_ramp <= 0:
+        return 1.0
+    return min(1.0, (step - tc.normal_delay + 1) / tc.normal_ramp)
+
+
 def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: TrainConfig,
                 background: torch.Tensor, gen: torch.Generator,
-                grid: SpanGrid | None = None,
+                grid: SpanGrid | None = None, step: int = 0,
                 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Loss of one shard of a step and its scalar logs. "box" sampler (``grid`` None):
-    ``batch_rays / shards`` random rays drawn with ``gen``; "occupancy": `draw_pixels`."""
+    """Loss of one shard of step ``step`` and its scalar logs. "box" sampler (``grid`` None):
+    ``batch_rays / shards`` random rays drawn with ``gen``; "occupancy": `draw_pixels`. The
+    normal term's weight follows `normal_factor`."""
     spp = tc.pixel_samples
     n_rays = tc.batch_rays // tc.shards
     if grid is None:
@@ -216,13 +228,14 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
     color = (pred - target).abs().mean()
     reg = regularisers(field, reg_points(field, points, tc.reg_points // tc.shards, gen),
                        tc.fd_eps, tc.smooth_eps, gen)
+    w_normal = tc.normal_weight * normal_factor(step, tc)
     loss = (color + tc.eikonal_weight * reg["eikonal"] + tc.kernel_smooth_weight * reg["smooth"]
-            + tc.normal_weight * reg["normal"])
+            + w_normal * reg["normal"])
     with torch.no_grad():
         mse = ((pred.clamp(0, 1) - target) ** 2).mean().item()
     return loss, {"loss": loss.item(), "color_l1": color.item(),
                   "eikonal": reg["eikonal"].item(), "normal": reg["normal"].item(),
-                  "smooth": reg["smooth"].item(), "psnr": psnr_of(mse),
+                  "smooth": reg["smooth"].item(), "w_normal": w_normal, "psnr": psnr_of(mse),
                   "rays": float(len(idx) * spp),
                   "samples": float(rendered * (tc.n_samples + tc.n_importance))}
 
@@ -307,11 +320,17 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
     background = torch.tensor(cfg.data.background, device=device, dtype=torch.float32)
     grid = (SpanGrid(field.aabb, tc.occ_resolution, tc.occ_k)
             if tc.sampler == "occupancy" else None)
+    at = [0]  # the step being taken (before_step runs first)
+
+    def before(k: int) -> None:
+        at[0] = k
+        before_step(field, grid, tc, k)
+
     summary = optimise(field, opt, cfg, Schedule.of("stage 1", tc),
-                       lambda gen: stage1_step(field, data, pixels, tc, background, gen, grid),
+                       lambda gen: stage1_step(field, data, pixels, tc, background, gen, grid,
+                                               at[0]),
                        run.checkpoint("stage1"), run.log("stage1"), device, resume=ckpt,
-                       stop_at=stop_at, progress=progress,
-                       before_step=lambda k: before_step(field, grid, tc, k), state=grid)
+                       stop_at=stop_at, progress=progress, before_step=before, state=grid)
     field.active_levels = None  # what the checkpoint's users evaluate: every level
     if summary["finished"] and evaluate_test and w.main:
         try:

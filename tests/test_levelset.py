@@ -156,6 +156,21 @@ def test_banded_evolution_matches_dense_reference(lam):
     np.testing.assert_allclose(out[inner], ref[inner], atol=2e-6)
 
 
+@pytest.mark.parametrize("memory_mb", [2048, 0])  # 0: the chunked path (1024-voxel chunks)
+def test_progress_bar_counts_the_steps_and_changes_nothing(memory_mb, capsys):
+    rng = np.random.default_rng(2)
+    X, Y, Z, h = grid(16)
+    f0 = (np.sqrt(X**2 + Y**2 + Z**2) - 0.5 + 0.02 * rng.normal(size=X.shape)).astype(np.float32)
+    v = rng.uniform(0, 0.03, size=X.shape).astype(np.float32)
+    quiet = evolve(f0, v, (h,) * 3, 6, 0.1, 0.2, 0.01, memory_mb=memory_mb)
+    capsys.readouterr()
+    shown = evolve(f0, v, (h,) * 3, 6, 0.1, 0.2, 0.01, memory_mb=memory_mb,
+                   progress="dilate (M+)")
+    err = capsys.readouterr().err
+    np.testing.assert_array_equal(shown, quiet)
+    assert "dilate (M+)" in err and "0/6 " in err  # one bar over the 6 steps
+
+
 def test_noisy_field_stays_bounded_and_contained():
     # A rough field (noise everywhere) must not blow up: values change only inside the band
     # and by at most the band width; SDF+ <= f0 <= SDF- holds exactly on the grid.

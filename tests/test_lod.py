@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from shells.errors import InputError
-from shells.levelset.lod import (LodParams, inside, is_closed, make_lod, parity_check,
-                                 self_intersecting_faces, verify)
+from shells.levelset.lod import (LodParams, Phases, inside, is_closed, make_lod,
+                                 parity_check, self_intersecting_faces, verify)
 from shells.levelset.mesh import clean_mesh, marching_cubes
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -98,6 +98,24 @@ def test_verify_detects_a_cut():
     small, _ = shells_of(f, 0.0, 0.06)  # the surface itself: inside M+, not containing it
     check = verify(small, outer, +1)
     assert not check["contained"] and not check["passed"]
+
+
+def test_phases_bar_ends_full_after_a_retry(capsys):
+    ph = Phases(3, enabled=True)
+    ph.start("outer: signed distance")
+    ph.start("outer: offset 0.2 h")
+    ph.add(2)  # a retry
+    ph.start("outer: offset 0.4 h")
+    ph.start("outer: snap")
+    assert ph.bar.n == 3 and ph.bar.total == 5
+    ph.start("outer: ray parity")
+    ph.close()
+    assert ph.bar.n == ph.bar.total == 5
+    assert "outer: ray parity" in capsys.readouterr().err
+    quiet = Phases()  # disabled: counts, prints nothing
+    quiet.start("x")
+    quiet.close()
+    assert capsys.readouterr().err == ""
 
 
 def test_bad_ratio():

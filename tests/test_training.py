@@ -9,6 +9,7 @@ import torch
 
 from shells.cli import train_main
 from shells.config import toy_config
+from shells.errors import InputError
 from shells.loop import lr_factor
 from shells.run import load_field
 from shells.training import train
@@ -87,6 +88,36 @@ def test_occupancy_steps_draw_until_the_batch_crosses_the_grid(tiny_blender):
     assert logs["samples"] == 64 * (cfg.train.n_samples + cfg.train.n_importance)
     loss.backward()
     assert field.rad_mlp[0].weight.grad.abs().sum() > 0  # (hash weights start at zero)
+
+
+def test_normal_term_delayed_and_ramped_in(tiny_blender):
+    """normal_delay / normal_ramp: the normal term's weight is 0, then rises linearly; the
+    step's loss holds exactly that share of it (same draw at every step number)."""
+    from shells.datasets import load_dataset
+    from shells.training import build_field, normal_factor, stage1_step
+
+    cfg = _tiny_config()
+    cfg.update({"train": {"normal_delay": 3, "normal_ramp": 4, "normal_weight": 0.5}})
+    tc = cfg.train
+    assert [normal_factor(k, tc) for k in (0, 2, 3, 4, 6, 7, 100)] == [0, 0, 0.25, 0.5, 1, 1, 1]
+    cfg.update({"train": {"normal_delay": 0, "normal_ramp": 0}})
+    assert normal_factor(0, cfg.train) == 1.0  # the default: on from the start
+    cfg.update({"train": {"normal_delay": 3, "normal_ramp": 4}})
+    data = load_dataset(tiny_blender, "train")
+    field = build_field(cfg, data.aabb, torch.device("cpu"))
+    pixels = data.images.reshape(-1, 3)
+    losses = {}
+    for k in (0, 4, 9):
+        loss, logs = stage1_step(field, data, pixels, tc, torch.ones(3),
+                                 torch.Generator().manual_seed(0), None, k)
+        losses[k] = (loss.item(), logs)
+    base = losses[0][0]
+    normal = losses[0][1]["normal"]
+    assert normal > 0 and losses[0][1]["w_normal"] == 0.0
+    assert losses[4][0] == pytest.approx(base + 0.5 * 0.5 * normal, rel=1e-6)
+    assert losses[9][0] == pytest.approx(base + 0.5 * normal, rel=1e-6)
+    with pytest.raises(InputError, match="normal_ramp"):
+        cfg.update({"train": {"normal_ramp": -1}})
 
 
 def test_coarse_to_fine_switches_levels_on():

@@ -49,6 +49,7 @@ inward; the toy preset allows 0.25 / 0.1 for the thick core-fuzz coat, see shell
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import torch
@@ -96,7 +97,8 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
            spacing,  # (3,) grid spacing in world units
            steps: int, dt: float, zeta: float, lambda_curv: float,
            cfl: float = 0.5, device: str | torch.device = "cpu",
-           memory_mb: int = 2048) -> np.ndarray:  # [X, Y, Z]
+           memory_mb: int = 2048,
+           progress: str | None = None) -> np.ndarray:  # [X, Y, Z]
     """Integrate df/dt = -|grad f| (v - lambda_curv h^2 kappa) w(f) for total time steps * dt.
 
     Central differences (one-sided at the grid border), forward Euler with the sub-steps of
@@ -104,7 +106,8 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
     A band larger than ``memory_mb`` allows (`BYTES_PER_BAND_VOXEL`) is updated in chunks
     whose neighbour indices are rebuilt every step; each step still reads the grid of the
     step before (the chunks' new values are written back together), so the result is the same,
-    bit for bit. Returns the evolved grid as float32 numpy.
+    bit for bit. ``progress``: the label of a progress bar over the (sub-)steps (None: no
+    bar). Returns the evolved grid as float32 numpy.
     """
     f0 = np.asarray(f0, dtype=np.float32)
     assert f0.ndim == 3 and np.shape(v) == f0.shape, (f0.shape, np.shape(v))
@@ -124,9 +127,10 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
     chunk = max(1024, (int(memory_mb) << 20) // BYTES_PER_BAND_VOXEL)
     try:
         if band.size <= chunk:
-            return _integrate(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl)
+            return _integrate(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
+                              progress)
         return _integrate_chunked(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
-                                  chunk)
+                                  chunk, progress)
     finally:
         torch.set_num_threads(threads)
 
@@ -139,18 +143,27 @@ def _prepared(active: torch.Tensor, shape: tuple[int, int, int], h: np.ndarray,
     return idx
 
 
-def _integrate(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl) -> np.ndarray:
+def _steps(n: int, progress: str | None) -> Any:
+    """range(n), under a progress bar labelled ``progress`` unless it is None."""
+    if progress is None:
+        return range(n)
+    from tqdm.auto import tqdm
+    return tqdm(range(n), desc=progress, unit="step", leave=False)
+
+
+def _integrate(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
+               progress: str | None = None) -> np.ndarray:
     n_sub = substeps(float(v_a.abs().max()), dt, h, cfl)
     dt_sub = dt / n_sub
     lam_w = float(lambda_curv) * float(h.min()) ** 2  # grid units -> world units (docstring)
     idx = _prepared(active, shape, h, with_diagonals=lam_w > 0.0)
-    for _ in range(steps * n_sub):
+    for _ in _steps(steps * n_sub, progress):
         f.index_copy_(0, active, _step(f, idx, v_a, h, dt_sub, lam_w, zeta))
     return f.reshape(shape).cpu().numpy()
 
 
 def _integrate_chunked(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
-                       chunk: int) -> np.ndarray:
+                       chunk: int, progress: str | None = None) -> np.ndarray:
     """`_integrate` in chunks of the band: new values of all chunks into one buffer, written
     back once per step (the grid a step reads is the grid of the step before)."""
     n_sub = substeps(float(v_a.abs().max()), dt, h, cfl)
@@ -158,7 +171,7 @@ def _integrate_chunked(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, c
     lam_w = float(lambda_curv) * float(h.min()) ** 2
     new = torch.empty_like(v_a)
     parts = [(a, min(a + chunk, active.numel())) for a in range(0, active.numel(), chunk)]
-    for _ in range(steps * n_sub):
+    for _ in _steps(steps * n_sub, progress):
         for a, b in parts:
             idx = _prepared(active[a:b], shape, h, with_diagonals=lam_w > 0.0)
             new[a:b] = _step(f, idx, v_a[a:b], h, dt_sub, lam_w, zeta)
@@ -244,15 +257,18 @@ def shell_sdfs(f0: np.ndarray,  # [X, Y, Z] SDF, f > 0 outside
                s: np.ndarray,  # [X, Y, Z] kernel size (world units)
                spacing,  # (3,) world units
                cfg: ShellConfig,
-               device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray]:
+               device: str | torch.device = "cpu",
+               progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(SDF+, SDF-) = (min(f0, dilated f0), max(f0, eroded f0)), both [X, Y, Z] float32.
 
     The min / max make the containment exact on the grid: {f0 <= 0} is inside {SDF+ <= 0} and
-    {SDF- <= 0} is inside {f0 <= 0}.
+    {SDF- <= 0} is inside {f0 <= 0}. ``progress``: a bar over each evolution's steps.
     """
     f0 = np.asarray(f0, dtype=np.float32)
     dil = evolve(f0, dilation_velocity(s, cfg), spacing, cfg.steps, cfg.dt, cfg.dilate_zeta,
-                 cfg.dilate_curvature, cfg.cfl, device, cfg.memory_mb)
+                 cfg.dilate_curvature, cfg.cfl, device, cfg.memory_mb,
+                 "dilate (M+)" if progress else None)
     ero = evolve(f0, -erosion_velocity(s, cfg), spacing, cfg.steps, cfg.dt, cfg.erode_zeta,
-                 cfg.erode_curvature, cfg.cfl, device, cfg.memory_mb)
+                 cfg.erode_curvature, cfg.cfl, device, cfg.memory_mb,
+                 "erode (M-)" if progress else None)
     return np.minimum(f0, dil), np.maximum(f0, ero)

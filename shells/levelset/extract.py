@@ -71,13 +71,14 @@ def extract_shells(f: np.ndarray,  # [X, Y, Z] SDF at the grid points, f > 0 out
                    cfg: ShellConfig | None = None,
                    device: str | torch.device = "cpu",
                    fixed_width: float | None = None,
-                   roi: tuple[tuple[float, float, float], float] | None = None) -> Shells:
+                   roi: tuple[tuple[float, float, float], float] | None = None,
+                   progress: bool = False) -> Shells:
     """Dilate / erode f by the kernel-dependent speeds and mesh both shells.
 
     ``fixed_width`` w replaces the adaptive band by the fixed one {|f| <= w} (SDF+ = f - w,
     SDF- = f + w): the baseline of the paper's ablation (Table 4, "fixed +-w"). ``roi``
     (centre, radius): the ball of interest of an unbounded scene, against whose faces small
-    components are measured (`clean_mesh`).
+    components are measured (`clean_mesh`). ``progress``: bars over the evolutions' steps.
     """
     cfg = cfg if cfg is not None else ShellConfig()
     f, s, box = check_field(f, s, aabb)
@@ -85,7 +86,7 @@ def extract_shells(f: np.ndarray,  # [X, Y, Z] SDF at the grid points, f > 0 out
     timings = {}
     t0 = time.perf_counter()
     if fixed_width is None:
-        sdf_plus, sdf_minus = shell_sdfs(f, s, spacing, cfg, device)
+        sdf_plus, sdf_minus = shell_sdfs(f, s, spacing, cfg, device, progress)
     else:
         if not fixed_width > 0:
             raise InputError(f"fixed band width {fixed_width}: must be > 0 world units")

@@ -59,6 +59,7 @@ def sample_grid(fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
 def sample_grid_banded(fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
                        aabb, resolution: int, band: float, chunk: int = 262144,
                        device: str | torch.device = "cpu", lipschitz: float = 2.0,
+                       progress: bool = False,
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """``sample_grid`` exact where |f| < ``band``, cheap elsewhere (coarse-to-fine).
 
@@ -68,7 +69,8 @@ def sample_grid_banded(fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Te
     point with |f_interp| < band + that margin is evaluated exactly; the others keep the
     interpolated f (its sign and |f| >= band are right) and s. Shell extraction reads f only
     where |f| < zeta (the level-set falloff) plus one grid step, so with band >= zeta + 2 h its
-    result equals that of the full sampling. Returns f, s, spacing and the exact fraction.
+    result equals that of the full sampling. ``progress``: a bar over the exact points.
+    Returns f, s, spacing and the exact fraction.
     """
     res = int(resolution)
     if res < 2:
@@ -93,9 +95,13 @@ def sample_grid_banded(fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Te
     todo = np.flatnonzero(np.abs(f) < band + margin)
     lo = torch.as_tensor(box[0], dtype=torch.float32, device=device)
     h = torch.as_tensor(spacing, dtype=torch.float32, device=device)
-    with torch.no_grad():
+    from tqdm.auto import tqdm
+    bar = tqdm(total=len(todo), desc="sample field", unit="pt", unit_scale=True, leave=False,
+               disable=not progress)
+    with torch.no_grad(), bar:
         for start in range(0, len(todo), int(chunk)):
             idx = todo[start:start + int(chunk)]
+            bar.update(len(idx))
             flat = torch.as_tensor(idx, device=device)
             ijk = torch.stack(torch.unravel_index(flat, (res, res, res)), dim=-1)
             sdf, kernel = fn(lo + ijk.to(torch.float32) * h)

@@ -86,6 +86,33 @@ class LodParams:
     snap_keep: float = 0.05  # check still passes (`snap`)
 
 
+class Phases:
+    """A progress bar over the named phases of a LOD construction (tqdm, on stderr); a
+    disabled one costs nothing. `start` ends the running phase and names the next; `add`
+    grows the count (a retry, the fallback)."""
+
+    def __init__(self, total: int = 0, enabled: bool = False) -> None:
+        from tqdm.auto import tqdm
+        self.bar = tqdm(total=total, desc="shells-lod", unit="phase", leave=False,
+                        disable=not enabled)
+        self.running = False
+
+    def start(self, label: str) -> None:
+        if self.running:
+            self.bar.update(1)
+        self.running = True
+        self.bar.set_postfix_str(label)
+
+    def add(self, n: int) -> None:
+        self.bar.total += n
+        self.bar.refresh()
+
+    def close(self) -> None:
+        if self.running:
+            self.bar.update(1)
+        self.bar.close()
+
+
 # --------------------------------------------------------------------------------------------
 # Inside tests (libigl winding numbers) and ray parity (Mitsuba / Embree)
 # --------------------------------------------------------------------------------------------
@@ -544,27 +571,36 @@ def snap(C: Mesh, S: Mesh, side: int, h: float, p: LodParams) -> tuple[Mesh, dic
 
 
 def offset_lod(S: Mesh, side: int, ratio: float, origin: np.ndarray, h: float,
-               distance: float, p: LodParams) -> tuple[Mesh, dict]:
+               distance: float, p: LodParams, phases: Phases | None = None
+               ) -> tuple[Mesh, dict]:
     """The offset of S at ``distance`` h on ``side`` (`DistanceGrid`), decimated to
     len(S faces) / ratio triangles (`decimate_staged`); where the checked descent stops above
     1.2x that count, again from an offset ``p.offset_growth`` times farther (more room for the
     decimation), up to ``p.offset_tries`` offsets. Returns the last try and every try's
-    record."""
+    record. ``phases``: the progress bar (4 phases, 3 more per further try)."""
+    ph = phases or Phases()
+    name = "outer" if side > 0 else "inner"
     target = max(int(len(S[1]) / ratio), 8)
     info: dict[str, Any] = {"method": "offset (exact signed distance) + staged decimation",
                             "target_triangles": target, "tries": []}
     t0 = time.perf_counter()
+    ph.start(f"{name}: signed distance")
     grid = DistanceGrid(S, origin, h)  # once: the tries differ only in the distance
     info["distance_grid_s"] = time.perf_counter() - t0
     for k in range(p.offset_tries):
         t0 = time.perf_counter()
         d = distance * p.offset_growth ** k
+        if k:
+            ph.add(3)
+        ph.start(f"{name}: offset {d:g} h")
         C, off = grid.offset(d * h, side, p.deepen, p.deepen_rounds)
         rec: dict[str, Any] = {"distance_h": d, "offset": off,
                                "offset_triangles": int(len(C[1]))}
         info["check"] = off["check"]
         if len(C[1]):
+            ph.start(f"{name}: decimate {len(C[1])} -> {target}")
             C, rec["decimation"] = decimate_staged(C, S, side, target, h, p)
+            ph.start(f"{name}: snap")
             C, rec["snap"] = snap(C, S, side, h, p)
             info["check"] = rec["snap"]["check"] or rec["decimation"].get("check", off["check"])
         rec["triangles"], rec["seconds"] = int(len(C[1])), time.perf_counter() - t0
@@ -576,12 +612,15 @@ def offset_lod(S: Mesh, side: int, ratio: float, origin: np.ndarray, h: float,
 
 
 def lod_outer(S: Mesh, lam: np.ndarray, ratio: float, origin: np.ndarray, h: float,
-              p: LodParams) -> tuple[Mesh, dict]:
+              p: LodParams, phases: Phases | None = None) -> tuple[Mesh, dict]:
     """C+ (module docstring): `offset_lod` of S outward from ``p.outer_offset`` h; if no try
     gets within 1.2x the triangle target, the alpha wrap of S instead (`wrap_outer`)."""
-    C, info = offset_lod(S, +1, ratio, origin, h, p.outer_offset, p)
+    ph = phases or Phases()
+    C, info = offset_lod(S, +1, ratio, origin, h, p.outer_offset, p, ph)
     if len(C[1]) <= 1.2 * info["target_triangles"]:
         return C, info
+    ph.add(1)
+    ph.start("outer: alpha wrap")
     C, wrap = wrap_outer(S, lam, ratio, h)
     wrap["offset_attempt"] = info
     return C, wrap
@@ -610,19 +649,20 @@ def wrap_outer(S: Mesh, lam: np.ndarray, ratio: float, h: float) -> tuple[Mesh, 
                "target_triangles": target, "wraps": tries, "check": check}
 
 
-def lod_inner(S: Mesh, ratio: float, origin: np.ndarray, h: float, p: LodParams
-              ) -> tuple[Mesh, dict]:
+def lod_inner(S: Mesh, ratio: float, origin: np.ndarray, h: float, p: LodParams,
+              phases: Phases | None = None) -> tuple[Mesh, dict]:
     """C- (module docstring): `offset_lod` of S inward from ``p.inner_depth`` h."""
-    return offset_lod(S, -1, ratio, origin, h, p.inner_depth, p)
+    return offset_lod(S, -1, ratio, origin, h, p.inner_depth, p, phases)
 
 
 def make_lod(outer: Mesh, inner: Mesh | None, ratio: float, origin: np.ndarray, h: float,
              p: LodParams | None = None, parity_rays: int = 100_000,
-             box: np.ndarray | None = None) -> tuple[Mesh, Mesh, dict]:
+             box: np.ndarray | None = None, progress: bool = False
+             ) -> tuple[Mesh, Mesh, dict]:
     """Coarse (C+, C-) of the fine shells (M+, M-) on the grid (``origin``, spacing ``h``) they
     were extracted on, about ``ratio`` times fewer triangles each; with the statistics
     (triangles, offsets used, checks, ray parity of ``parity_rays`` random rays through
-    ``box``)."""
+    ``box``). ``progress``: a bar over the phases (`Phases`)."""
     p = p or LodParams()
     if not ratio > 1:
         raise InputError(f"--ratio {ratio}: must be > 1 (fine triangles per coarse triangle)")
@@ -632,13 +672,25 @@ def make_lod(outer: Mesh, inner: Mesh | None, ratio: float, origin: np.ndarray, 
     Fi = np.asarray(inner[1], np.int64) if has_inner else np.zeros((0, 3), np.int64)
     box = np.asarray(box if box is not None else np.stack([Vo.min(0), Vo.max(0)]), np.float64)
     stats: dict[str, Any] = {"ratio": ratio, "params": dict(vars(p)), "grid_spacing": h}
+    ph = Phases(5 + 5 * has_inner, progress)  # per shell: 4 of offset_lod and the parity
+    try:
+        Co, Ci, stats = _make_lod(Vo, Fo, Vi, Fi, has_inner, ratio, origin, h, p,
+                                  parity_rays, box, stats, ph)
+    finally:
+        ph.close()
+    return Co, Ci, stats
+
+
+def _make_lod(Vo, Fo, Vi, Fi, has_inner: bool, ratio: float, origin: np.ndarray, h: float,
+              p: LodParams, parity_rays: int, box: np.ndarray, stats: dict, ph: Phases
+              ) -> tuple[Mesh, Mesh, dict]:
     t0 = time.perf_counter()
     lam_o = band_allowance(Vo, Vi, h, p)
-    Co, info_o = lod_outer((Vo, Fo), lam_o, ratio, origin, h, p)
+    Co, info_o = lod_outer((Vo, Fo), lam_o, ratio, origin, h, p, ph)
     stats["timings_s"] = {"outer": time.perf_counter() - t0}
     if has_inner:
         t0 = time.perf_counter()
-        Ci, info_i = lod_inner((Vi, Fi), ratio, origin, h, p)
+        Ci, info_i = lod_inner((Vi, Fi), ratio, origin, h, p, ph)
         stats["timings_s"]["inner"] = time.perf_counter() - t0
     else:
         Ci, info_i = (np.zeros((0, 3)), np.zeros((0, 3), np.int32)), {"method": "none (no M-)"}
@@ -653,6 +705,7 @@ def make_lod(outer: Mesh, inner: Mesh | None, ratio: float, origin: np.ndarray, 
                      "reduction": float(len(S[1]) / max(len(C[1]), 1))})
         if len(C[1]):
             t0 = time.perf_counter()
+            ph.start(f"{name}: ray parity")
             info["parity"] = parity_check(C[0], C[1], parity_rays, box)
             info["parity"]["seconds"] = time.perf_counter() - t0
         stats[name] = info
