@@ -99,6 +99,7 @@ def test_config_override_of_a_trained_run(stage1_run, tmp_path, capsys):
     _, cfg = load_field(run, stage="stage1")
     assert cfg.shell.dilate_zeta == _tiny_config().shell.dilate_zeta != 0.2
     before = {p.name: _digest(p) for p in (run / "shells").iterdir()}
+    capsys.readouterr()  # the successful extract's progress bars
 
     bad_section = tmp_path / "field.json"
     bad_section.write_text(json.dumps({"field": {"n_levels": 2}}))

@@ -212,7 +212,11 @@ class _Lookup(torch.autograd.Function):
             if Fn == 2:
                 upd = torch.view_as_complex(upd)
                 grad_params = torch.zeros(ctx.n_params // 2, dtype=upd.dtype, device=grad.device)
-                grad_params.index_add_(0, rows.view(-1), upd.view(-1))
+                # int32 rows (< 2^31: Dr.Jit's cap) scatter 1.6x faster on the CPU, the same sum
+                # in the same order (bench/hash_scatter.py)
+                idx = rows.view(-1)
+                grad_params.index_add_(0, idx.int() if idx.device.type == "cpu" else idx,
+                                       upd.view(-1))
                 grad_params = torch.view_as_real(grad_params).view(-1)
             else:
                 grad_params = grad.new_zeros(ctx.n_params // Fn, Fn)

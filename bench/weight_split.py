@@ -1,0 +1,69 @@
+"""Where a field's full-ray rendering weight lies: near its level set, or off it.
+
+    python bench/weight_split.py RUN [--stage stage1|stage2] [--samples 64 --importance 32]
+
+Renders RUN's test views in full-ray mode (`shells.render.volume.render_volume_rays`, the
+stage-1 sampler with a deterministic placement) and sums the compositing weights of the
+samples in three classes: near the level set, |f| < h + k s (the occupancy rule every
+skipping renderer uses, `shells.fields.neus.may_have_density`, with h the half diagonal of a
+`render.occ_resolution` cell and k = `render.occ_k`); f < 0 farther (density inside a solid
+that a ray reached without being absorbed at the crossing: the predicted normal said it was
+leaving there); f > 0 farther. The weight off the level set is what the occupancy grid and
+the band renderer cannot see. Prints the three shares as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from shells.datasets import load_dataset  # noqa: E402
+from shells.run import RunDir, field_from_checkpoint, read_checkpoint, read_run  # noqa: E402
+from shells.render.volume import render_volume_rays  # noqa: E402
+
+from report import emit_json  # noqa: E402
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("run")
+    p.add_argument("--stage", default="stage1", choices=["stage1", "stage2"])
+    p.add_argument("--samples", type=int, default=64)
+    p.add_argument("--importance", type=int, default=32)
+    p.add_argument("--chunk", type=int, default=8192)
+    a = p.parse_args()
+    run = RunDir(a.run)
+    meta = read_run(run)
+    ckpt = read_checkpoint(run, a.stage)
+    field, cfg = field_from_checkpoint(ckpt, a.run)
+    data = load_dataset(meta["data"], "test", downscale=int(meta["downscale"]),
+                        background=cfg.data.background)
+    box = field.aabb
+    h = 0.5 * float((box[1] - box[0]).norm()) / cfg.render.occ_resolution
+    k = cfg.render.occ_k
+    bg = torch.tensor(cfg.data.background)
+    tot = {"near_level_set": 0.0, "inside_far": 0.0, "outside_far": 0.0}
+    with torch.no_grad():
+        for v in range(len(data.cameras)):
+            o, d = data.cameras.pixel_rays(v, 1)
+            for i in range(0, len(o), a.chunk):
+                out = render_volume_rays(field, o[i:i + a.chunk], d[i:i + a.chunk],
+                                         a.samples, a.importance, bg)
+                w, f, s = out["weights"], out["sdf"], out["s"]
+                near = f.abs() < h + k * s
+                tot["near_level_set"] += float(w[near].sum())
+                tot["inside_far"] += float(w[~near & (f < 0)].sum())
+                tot["outside_far"] += float(w[~near & (f > 0)].sum())
+    total = max(sum(tot.values()), 1e-12)
+    emit_json({"run": a.run, "stage": a.stage, "views": len(data.cameras), "h": h, "k": k,
+               "share": {n: v / total for n, v in tot.items()}})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
