@@ -381,9 +381,11 @@ def solid_groups(free: np.ndarray,  # bool grid: cells or nodes that do not meet
     from scipy import ndimage
 
     labels, n = ndimage.label(free)
-    first = ndimage.minimum(np.arange(labels.size).reshape(labels.shape), labels,
-                            np.arange(1, n + 1))
-    reps = np.stack(np.unravel_index(np.asarray(first, np.int64).reshape(-1), labels.shape), 1)
+    reps = np.zeros((n, 3), np.int64)  # each group's first element in C order, found in its
+    for k, box in enumerate(ndimage.find_objects(labels)):  # bounding box: no grid-sized
+        mine = labels[box] == k + 1  # index array (1 GB of int64 at 512^3)
+        at = np.unravel_index(int(np.argmax(mine)), mine.shape)
+        reps[k] = [sl.start + j for sl, j in zip(box, at)]
     return labels, np.concatenate([[False], inside(V, F, position(reps))])
 
 
