@@ -10,8 +10,8 @@ Candidates (D in grid cells h, R the triangle ratio):
 
 * ``shift-D``: the fine shell moved D along its vertex normals (in for M-, out for M+; not
   contained in general: the cost of the distance alone);
-* ``offset-D``: `offset_surface` at D (exact signed distance, marching cubes, deepened where
-  it fails its check), undecimated;
+* ``offset-D``: `DistanceGrid.offset` at D (exact signed distance, marching cubes, deepened
+  where it fails its check; one distance grid for all of them), undecimated;
 * ``offset-D-xR``: that, then `decimate_staged` to 1/R of the fine triangles;
 * inner only: ``voxel-subK``, the grid cells of h / K that M- does not meet, in groups whose
   winding number says inside, meshed half a cell in, undecimated (the construction before
@@ -103,19 +103,24 @@ def main() -> None:
     staged = args.staged or (["0.25:4", "0.3:10", "0.4:10"] if side < 0
                              else ["0.15:10", "0.2:10", "0.3:10"])
 
+    grids: list[L.DistanceGrid] = []
+
+    def offset(d: float) -> L.Mesh:  # the shell's distance grid is built once, when needed
+        if not grids:
+            grids.append(L.DistanceGrid(S, origin, h))
+        return grids[0].offset(d * h, side)[0]
+
     def candidates():
         yield "fine", lambda: S, False
         for d in (0.15, 0.25, 0.5, 1.0):
             yield f"shift-{d:g}", (lambda d=d: (S[0] + side * d * h * fine.vertex_normals,
                                                 S[1])), False
         for d in (0.1, 0.25):
-            yield f"offset-{d:g}", (lambda d=d: L.offset_surface(S, origin, h, d * h, side)[0]
-                                    ), True
+            yield f"offset-{d:g}", (lambda d=d: offset(d)), True
         for dr in staged:
             d, r = (float(x) for x in dr.split(":"))
             yield (f"offset-{d:g}-x{r:g}", (lambda d=d, r=r: L.decimate_staged(
-                L.offset_surface(S, origin, h, d * h, side)[0], S, side, int(len(S[1]) / r),
-                h, p)[0]), True)
+                offset(d), S, side, int(len(S[1]) / r), h, p)[0]), True)
         if side < 0:
             lam = L.band_allowance(Mi[0], Mo[0], h, p)
             for k in (1, 2):
@@ -140,7 +145,7 @@ def main() -> None:
         write_ply(scratch / "shells" / "lod" / f"{args.shell}.ply",
                   trimesh.Trimesh(*C, process=False))
         dest = out / f"render-{name}"
-        subprocess.run([sys.executable, "-c", "from shells.cli import render_main; render_main()",
+        subprocess.run([sys.executable, "-c", "from shells.cli import render_main; raise SystemExit(render_main())",
                         str(scratch), "--stage", "stage1", "--shells", "lod", "--out", str(dest)],
                        check=True, capture_output=True)
         m = json.loads((dest / "metrics.json").read_text())

@@ -194,13 +194,13 @@ def test_inner_offset_of_a_hollow_ball_leaves_its_cavity_out():
     into it): the grid nodes in the cavity are not reached from outside, yet they are outside
     the solid, so the inner offset surface lies in the shell between the two spheres, at the
     offset asked from both, and passes the containment check."""
-    from shells.levelset.lod import offset_surface
+    from shells.levelset.lod import DistanceGrid
 
     X, Y, Z = _grid()
     r = np.sqrt(X ** 2 + Y ** 2 + Z ** 2)
     m = clean_mesh(marching_cubes(np.maximum(r - 0.6, 0.3 - r), BOX))
     S = (np.asarray(m.vertices), np.asarray(m.faces))
-    (V, F), info = offset_surface(S, BOX[0], H, 0.3 * H, -1)
+    (V, F), info = DistanceGrid(S, BOX[0], H).offset(0.3 * H, -1)
     rv = np.linalg.norm(V, axis=1)
     assert len(F) and info["check"]["passed"] and is_closed(F)
     assert rv.min() > 0.3 + 0.2 * H and rv.max() < 0.6 - 0.2 * H
@@ -210,12 +210,12 @@ def test_inner_offset_of_a_hollow_ball_leaves_its_cavity_out():
 def test_outer_offset_contains_and_sits_at_its_offset():
     """The outer offset of a sphere of radius 0.5 at 0.3 cells: contains it, and its vertices
     lie 0.3 cells out (to a tenth of a cell: marching cubes of an exact distance)."""
-    from shells.levelset.lod import offset_surface
+    from shells.levelset.lod import DistanceGrid
 
     f = sphere(0.5)
     m = clean_mesh(marching_cubes(f, BOX))
     S = (np.asarray(m.vertices), np.asarray(m.faces))
-    (V, F), info = offset_surface(S, BOX[0], H, 0.3 * H, +1)
+    (V, F), info = DistanceGrid(S, BOX[0], H).offset(0.3 * H, +1)
     assert info["check"]["passed"] and len(info["rounds"]) == 1
     d = np.linalg.norm(V, axis=1) - np.linalg.norm(S[0], axis=1).mean()
     assert np.abs(d - 0.3 * H).max() < 0.1 * H

@@ -434,7 +434,7 @@ class DistanceGrid:
 
         h, V = self.h, self.V
         if not 0 <= depth <= self.cap:
-            raise ValueError(f"offset_surface: depth {depth / h:.3g} h outside [0, 2.5] h")
+            raise ValueError(f"DistanceGrid.offset: depth {depth / h:.3g} h outside [0, 2.5] h")
         d = np.full(len(self.P), float(depth))
         g = self.g.copy()
         info: dict[str, Any] = {"depth": float(depth), "band_nodes": int(len(self.P)),
@@ -460,13 +460,6 @@ class DistanceGrid:
         raise InputError(f"shell LOD: the offset surface failed its containment check after "
                          f"{rounds} deeper rounds ({check}); re-extract the shells or report "
                          "this")
-
-
-def offset_surface(S: Mesh, origin: np.ndarray, h: float, depth: float, side: int = -1,
-                   deepen: float = 0.25, rounds: int = 12) -> tuple[Mesh, dict]:
-    """`DistanceGrid(S, origin, h).offset(depth, side, deepen, rounds)`: a closed surface at
-    ``depth`` inside (``side`` -1) or outside (+1) the closed mesh S, checked."""
-    return DistanceGrid(S, origin, h).offset(depth, side, deepen, rounds)
 
 
 def decimate_staged(C: Mesh, S: Mesh, side: int, target: int, h: float, p: "LodParams"
