@@ -39,6 +39,7 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from shells.levelset import containment
 from shells.levelset import lod as L
 from shells.levelset.mesh import write_ply
 from shells.run import RunDir, shell_meshes, shells_digest
@@ -151,9 +152,9 @@ def main() -> None:
         m = json.loads((dest / "metrics.json").read_text())
         T = trimesh.Trimesh(*C, process=False)
         far, _ = cKDTree(C[0]).query(S[0])
-        depth = side * L.signed_distance(C, S) / h
+        depth = side * containment.signed_distance(C, S) / h
         rows.append({"name": name, "triangles": int(len(C[1])), "build_s": seconds,
-                     "contained": (L.verify(C, S, side)["passed"] if check else None),
+                     "contained": (containment.verify(C, S, side)["passed"] if check else None),
                      "volume_fraction": float(T.volume / fine.volume),
                      "components": len(T.split(only_watertight=False)),
                      "fine_vertices_over_3h_away": float((far > 3 * h).mean()),

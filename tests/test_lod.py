@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from shells.errors import InputError
-from shells.levelset.lod import (LodParams, Phases, inside, is_closed, make_lod,
-                                 parity_check, self_intersecting_faces, verify)
+from shells.levelset.containment import (inside, is_closed, parity_check,
+                                         self_intersecting_faces, verify)
+from shells.levelset.lod import LodParams, Phases, make_lod
 from shells.levelset.mesh import clean_mesh, marching_cubes
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -126,22 +127,22 @@ def test_bad_ratio():
 
 
 def test_check_names_the_vertices_where_an_inner_shell_fails():
-    """`_check` (whose named vertices `decimate_staged` and `snap` act on): a coarse inner
+    """`check_side` (whose named vertices `decimate_staged` and `snap` act on): a coarse inner
     sphere of radius 0.8 inside a fine one of radius 1 passes with no vertex named; pushed
     out to 1.2, one coarse vertex is named (with the vertices of its faces, which now cross),
     and the fine vertices its spike swallows are named too; everything else is not."""
     import trimesh
 
-    from shells.levelset.lod import _check
+    from shells.levelset.containment import check_side
 
     fine = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
     coarse = trimesh.creation.icosphere(subdivisions=2, radius=0.8)
     S = (np.asarray(fine.vertices), np.asarray(fine.faces))
     V, F = np.asarray(coarse.vertices).copy(), np.asarray(coarse.faces)
-    rec, bad_coarse, bad_fine = _check((V, F), S, -1)
+    rec, bad_coarse, bad_fine = check_side((V, F), S, -1)
     assert rec["passed"] and not bad_coarse.any() and not bad_fine.any()
     V[7] *= 1.2 / 0.8
-    rec, bad_coarse, bad_fine = _check((V, F), S, -1)
+    rec, bad_coarse, bad_fine = check_side((V, F), S, -1)
     ring = np.unique(F[(F == 7).any(1)])  # vertex 7 and its neighbours
     assert not rec["passed"] and bad_coarse[7]
     assert set(np.nonzero(bad_coarse)[0]) <= set(ring.tolist())
@@ -227,7 +228,8 @@ def test_snap_moves_a_coarse_inner_shell_toward_the_fine_one_and_keeps_it_inside
     still passes the containment check (chords of a convex shell stay inside)."""
     import trimesh
 
-    from shells.levelset.lod import _check, snap
+    from shells.levelset.containment import check_side
+    from shells.levelset.lod import snap
 
     fine = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
     coarse = trimesh.creation.icosphere(subdivisions=2, radius=0.8)
@@ -235,5 +237,5 @@ def test_snap_moves_a_coarse_inner_shell_toward_the_fine_one_and_keeps_it_inside
     (V, F), info = snap((np.asarray(coarse.vertices), np.asarray(coarse.faces)), S, -1, 0.02,
                         LodParams())
     r = np.linalg.norm(V, axis=1)
-    assert info["check"]["passed"] and _check((V, F), S, -1)[0]["passed"]
+    assert info["check"]["passed"] and check_side((V, F), S, -1)[0]["passed"]
     assert r.max() < 1.0 and 1.0 - r.mean() < 0.06 and len(info["passes"]) == 3
