@@ -101,9 +101,12 @@ def test_viewer_in_a_headless_browser_shows_the_object(tmp_path):
             assert line or server.poll() is None, "shells-view exited"
         assert f"http://127.0.0.1:{port}" in line  # the URL is printed
         shot = tmp_path / "shot.png"
-        t0 = time.time()
-        screenshot(f"http://127.0.0.1:{port}", shot, lambda: (dump / "camera.json").is_file()
-                   and time.time() - t0 > 3)
+        cam_file = dump / "camera.json"
+        # ready when no full frame has been dumped for 3 s: a camera event after a dump
+        # renders and dumps again, and the screenshot must show the frame compared below,
+        # the last one dumped (3 s after the first dump was not always enough under load)
+        screenshot(f"http://127.0.0.1:{port}", shot, lambda: cam_file.is_file()
+                   and time.time() - cam_file.stat().st_mtime > 3)
         assert shot.is_file() and (dump / "frame.png").is_file()
     finally:
         server.terminate()
