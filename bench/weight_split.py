@@ -9,7 +9,9 @@ skipping renderer uses, `shells.fields.neus.may_have_density`, with h the half d
 `render.occ_resolution` cell and k = `render.occ_k`); f < 0 farther (density inside a solid
 that a ray reached without being absorbed at the crossing: the predicted normal said it was
 leaving there); f > 0 farther. The weight off the level set is what the occupancy grid and
-the band renderer cannot see. Prints the three shares as JSON.
+the band renderer cannot see. Prints the three shares as JSON; for an unbounded field also
+each class's share inside the ball of interest (|u| <= 1, the object) and outside it (the
+contracted room), as ``share_ball`` and ``share_outside`` (of the whole weight).
 """
 
 from __future__ import annotations
@@ -47,7 +49,10 @@ def main() -> int:
     h = 0.5 * float((box[1] - box[0]).norm()) / cfg.render.occ_resolution
     k = cfg.render.occ_k
     bg = torch.tensor(cfg.data.background)
-    tot = {"near_level_set": 0.0, "inside_far": 0.0, "outside_far": 0.0}
+    names = ("near_level_set", "inside_far", "outside_far")
+    tot = {n: 0.0 for n in names}
+    sim = field.similarity
+    ball = {n: 0.0 for n in names}
     with torch.no_grad():
         for v in range(len(data.cameras)):
             o, d = data.cameras.pixel_rays(v, 1)
@@ -56,12 +61,19 @@ def main() -> int:
                                          a.samples, a.importance, bg)
                 w, f, s = out["weights"], out["sdf"], out["s"]
                 near = f.abs() < h + k * s
-                tot["near_level_set"] += float(w[near].sum())
-                tot["inside_far"] += float(w[~near & (f < 0)].sum())
-                tot["outside_far"] += float(w[~near & (f > 0)].sum())
+                classes = (near, ~near & (f < 0), ~near & (f > 0))
+                inb = (torch.ones_like(near) if sim is None else
+                       torch.linalg.vector_norm(sim.to_unit(out["points"]), dim=-1) <= 1.0)
+                for n, m in zip(names, classes):
+                    tot[n] += float(w[m].sum())
+                    ball[n] += float(w[m & inb].sum())
     total = max(sum(tot.values()), 1e-12)
-    emit_json({"run": a.run, "stage": a.stage, "views": len(data.cameras), "h": h, "k": k,
-               "share": {n: v / total for n, v in tot.items()}})
+    res = {"run": a.run, "stage": a.stage, "views": len(data.cameras), "h": h, "k": k,
+           "share": {n: v / total for n, v in tot.items()}}
+    if sim is not None:
+        res["share_ball"] = {n: ball[n] / total for n in names}
+        res["share_outside"] = {n: (tot[n] - ball[n]) / total for n in names}
+    emit_json(res)
     return 0
 
 

@@ -83,6 +83,13 @@ class TrainConfig:
     occ_warmup: int = 256  # "occupancy": steps with whole chords before the first grid build
     reg_points: int = 4096  # points per step for the Eikonal, normal and smoothness terms
     # (half of them ray samples, half uniform in the box)
+    reg_rays: str = "uniform"  # how the ray half is drawn: "uniform" over the step's samples;
+    # "level_set": half in proportion to the compositing weight, half uniformly among the
+    # samples near the level set (|f| < h + occ_k s), so the normal term acts where rays end
+    # and where they cross the surface (`shells.training.reg_points`)
+    offband_weight: float = 0.0  # weight of the off-band term: the compositing weight that lies
+    # inside a solid, off its level set (f < -(h + occ_k s), h the half diagonal of an
+    # occ_resolution cell), which every skipping renderer (shells, occupancy grid) drops
     coarse_to_fine_iters: int = 0  # Neuralangelo: the hash levels are switched on one by one
     # over this many steps (0 = all levels from the start)
     coarse_to_fine_start: int = 4  # levels active at step 0 when coarse_to_fine_iters > 0
@@ -347,7 +354,9 @@ _RULES = [_rule(k, *r) for k, r in [
     ("train.n_samples", _at_least(1)),
     *[(f"train.{k}", _at_least(0)) for k in ("n_importance", "eikonal_weight",
                                             "kernel_smooth_weight", "normal_weight",
-                                            "smooth_eps", "eval_max_views")],
+                                            "smooth_eps", "eval_max_views", "offband_weight")],
+    ("train.reg_rays", ((lambda v: v in ("uniform", "level_set")),
+                        "must be 'uniform' or 'level_set'")),
     ("train.fd_eps", _positive()),
     ("train.sampler", ((lambda v: v in ("box", "occupancy")), "must be 'box' or 'occupancy'")),
     *[(f"train.{k}", _at_least(1)) for k in ("occ_resolution", "occ_every", "reg_points",

@@ -3,7 +3,10 @@
 Loss (Eq. 8-12): L = L1 colour + w_eik (|grad f| - 1)^2 + w_smooth |log s(x) - log s(x + n)|
 + w_normal |n(x) - grad f / |grad f||, n ~ N(0, eps^2), grad f by central differences; w_normal
 may be switched on late and ramped in (``normal_delay``, ``normal_ramp``: `normal_factor`).
-The regularisers are evaluated on a subset of the ray samples plus uniform points in the box.
+The regularisers are evaluated on a subset of the ray samples plus uniform points in the box
+(``reg_rays``: which samples). Logged as ``off_band``: the share of the compositing weight inside
+a solid off its level set, which the shells and the occupancy grid cannot see (`off_band`;
+``offband_weight`` > 0 makes it a loss term).
 
 Sampling (`TrainConfig.sampler`): "box" samples every ray over its whole chord through the
 scene box; "occupancy" keeps an occupancy grid of the field (`shells.render.volume.SpanGrid`,
@@ -32,6 +35,7 @@ from shells.datasets import (Dataset, load_dataset, read_frames, region_of_inter
 from shells.errors import InputError, write_json
 from shells.contraction import Similarity
 from shells.fields.network import ShellField
+from shells.fields.neus import may_have_density
 from shells.loop import Schedule, join, make_optimizer, optimise, psnr_of
 from shells.metrics import psnr
 from shells.render.volume import SpanGrid, render_volume_image, render_volume_rays
@@ -148,20 +152,56 @@ def regularisers(field: ShellField,
 
 
 def reg_points(field: ShellField, ray_points: torch.Tensor, n: int,
-               gen: torch.Generator) -> torch.Tensor:
+               gen: torch.Generator, weights: torch.Tensor | None = None,
+               near: torch.Tensor | None = None) -> torch.Tensor:
     """Field-space points: half from the ray samples (where the image loss acts), half uniform
     in the field's box (all uniform when there are no ray samples). An unbounded field's
     uniform points are split between its box and the cube around the ball of interest (which
-    holds 1/8 of that box's volume, and the object)."""
+    holds 1/8 of that box's volume, and the object).
+
+    The ray half is drawn uniformly over the samples, or (``weights`` and ``near`` given, the
+    shape of ``ray_points[..., 0]``: ``train.reg_rays`` "level_set") half in proportion to the
+    compositing weight and half uniformly among the samples near the level set: there a
+    predicted normal that disagrees with grad f decides whether a ray is absorbed at the
+    crossing or passes into the solid."""
     flat = field.to_field(ray_points.detach().reshape(-1, 3))
     n_ray = n // 2 if flat.shape[0] else 0
-    pick = torch.randint(0, max(1, flat.shape[0]), (n_ray,), generator=gen, device=flat.device)
+    if weights is None or n_ray == 0:
+        pick = torch.randint(0, max(1, flat.shape[0]), (n_ray,), generator=gen,
+                             device=flat.device)
+    else:
+        w = weights.detach().reshape(-1).clamp_min(0) + 1e-12
+        m = near.reshape(-1).to(w.dtype) + 1e-12  # uniform over all when none is near
+        n_w = n_ray // 2
+        pick = torch.cat([torch.multinomial(w, n_w, replacement=True, generator=gen),
+                          torch.multinomial(m, n_ray - n_w, replacement=True, generator=gen)])
     lo, hi = field.aabb[0], field.aabb[1]
     uni = lo + (hi - lo) * torch.rand(n - n_ray, 3, generator=gen, device=flat.device)
     if field.similarity is not None:  # the second half of them in the ball's cube
         k = (n - n_ray) // 2
         uni[k:] = 0.5 * (lo + hi) + 0.5 * (uni[k:] - 0.5 * (lo + hi))
     return torch.cat([flat[pick], uni])
+
+
+def off_band(field: ShellField, out: dict[str, torch.Tensor], tc: TrainConfig,
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The weight a skipping renderer drops, of the rays in ``out`` (`render_volume_rays`).
+
+    A sample is near the level set when |f| < h + occ_k s (`may_have_density`, h the half
+    diagonal of an ``occ_resolution`` cell of the field's box), and off the band inside a
+    solid when f < -(h + occ_k s): a ray reaches such a sample only if it was not absorbed
+    where it crossed f = 0 (the predicted normal said it was leaving there), and neither the
+    shells nor an occupancy grid sample it. Returns (the mean over rays of the weight there,
+    with gradient: the off-band term; its share of all the weight, detached; near [R, S])."""
+    box = field.aabb
+    h = 0.5 * float((box[1] - box[0]).norm()) / tc.occ_resolution
+    f = out["sdf"].detach()
+    near = may_have_density(f, out["s"].detach(), h, tc.occ_k)
+    off = (f < 0) & ~near
+    w = out["weights"]
+    term = (w * off).sum(1).mean()
+    share = term.detach() / w.detach().sum(1).mean().clamp_min(1e-12)
+    return term, share, near
 
 
 def draw_pixels(data: Dataset, grid: SpanGrid, n_rays: int, spp: int, gen: torch.Generator,
@@ -212,30 +252,40 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
         out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, background, gen)
         pred = out["color"].reshape(len(idx), spp, 3).mean(1)  # box filter
         rendered = len(o)
-        points = out["points"]
     else:
         idx, o, d, near, far, hit, crosses = draw_pixels(data, grid, n_rays, spp, gen)
         m = crosses.repeat_interleave(spp)  # the rays of the pixels that cross
         pred = background.expand(len(idx), 3).clone()
         rendered = int(m.sum())
-        points = o.new_zeros(0, 3)
+        out = None
         if rendered:
             out = render_volume_rays(field, o[m], d[m], tc.n_samples, tc.n_importance,
                                      background, gen, span=(near[m], far[m], hit[m]))
             pred[crosses] = out["color"].reshape(-1, spp, 3).mean(1)  # box filter
-            points = out["points"]
     target = pixels[idx]
     color = (pred - target).abs().mean()
-    reg = regularisers(field, reg_points(field, points, tc.reg_points // tc.shards, gen),
-                       tc.fd_eps, tc.smooth_eps, gen)
+    zero = color.new_zeros(())
+    if out is None:
+        points, off, share, near_ls = o.new_zeros(0, 3), zero, zero, None
+    else:
+        points = out["points"]
+        off, share, near_ls = off_band(field, out, tc)
+    level_set = tc.reg_rays == "level_set" and out is not None
+    pts = reg_points(field, points, tc.reg_points // tc.shards, gen,
+                     weights=out["weights"] if level_set else None,
+                     near=near_ls if level_set else None)
+    reg = regularisers(field, pts, tc.fd_eps, tc.smooth_eps, gen)
     w_normal = tc.normal_weight * normal_factor(step, tc)
     loss = (color + tc.eikonal_weight * reg["eikonal"] + tc.kernel_smooth_weight * reg["smooth"]
             + w_normal * reg["normal"])
+    if tc.offband_weight > 0:
+        loss = loss + tc.offband_weight * off
     with torch.no_grad():
         mse = ((pred.clamp(0, 1) - target) ** 2).mean().item()
     return loss, {"loss": loss.item(), "color_l1": color.item(),
                   "eikonal": reg["eikonal"].item(), "normal": reg["normal"].item(),
                   "smooth": reg["smooth"].item(), "w_normal": w_normal, "psnr": psnr_of(mse),
+                  "off_band": float(share),
                   "rays": float(len(idx) * spp),
                   "samples": float(rendered * (tc.n_samples + tc.n_importance))}
 

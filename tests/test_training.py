@@ -281,3 +281,51 @@ def test_config_ranges_are_checked_when_loaded(tmp_path, capsys):
     assert train_main(["--data", str(tmp_path), "--out", str(tmp_path / "r"), "--iters", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--iters" in err[0] and "train.iters" in err[0]
+
+
+def test_off_band_weight_hand_worked():
+    """The off-band term is the mean over rays of the weight at f < -(h + k s): with a 2-unit
+    box and 1 cell per axis (h = sqrt(3)) and k = 1, s = 0.1 everywhere, the band is
+    |f| < 1.832; ray 0 holds 0.2 of its 0.9 there, ray 1 nothing of its 0.5."""
+    from shells.config import TrainConfig
+    from shells.training import off_band
+
+    class F:
+        aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+    tc = TrainConfig(occ_resolution=1, occ_k=1.0)
+    w = torch.tensor([[0.5, 0.2, 0.2], [0.3, 0.2, 0.0]], requires_grad=True)
+    out = {"weights": w, "sdf": torch.tensor([[0.0, -1.0, -2.0], [3.0, -1.8, -5.0]]),
+           "s": torch.full((2, 3), 0.1)}
+    term, share, near = off_band(F(), out, tc)
+    assert term.item() == pytest.approx(0.1)  # (0.2 + 0) / 2 rays
+    assert share.item() == pytest.approx(0.2 / 1.4)
+    assert near.tolist() == [[True, True, False], [False, True, False]]
+    term.backward()
+    assert torch.allclose(w.grad, torch.tensor([[0, 0, 0.5], [0, 0, 0.5]]))
+
+
+def test_level_set_regulariser_points_come_from_weight_and_band(tiny_blender):
+    """reg_rays 'level_set': the ray half of the points is drawn only where the weight is and
+    among the near-level-set samples, half each; the other half stays uniform in the box."""
+    from shells.datasets import load_dataset
+    from shells.training import build_field, reg_points
+
+    cfg = _tiny_config()
+    data = load_dataset(tiny_blender, "train")
+    field = build_field(cfg, data.aabb, torch.device("cpu"))
+    pts = torch.arange(2 * 4 * 3, dtype=torch.float32).reshape(2, 4, 3) / 100
+    w = torch.zeros(2, 4)
+    w[0, 1] = 0.7  # the only weight
+    near = torch.zeros(2, 4, dtype=torch.bool)
+    near[1, 2] = True  # the only sample near the level set
+    out = reg_points(field, pts, 40, torch.Generator().manual_seed(0), weights=w, near=near)
+    assert out.shape == (40, 3)
+    ray = out[:20]
+    assert (ray[:10] == pts[0, 1]).all() and (ray[10:] == pts[1, 2]).all()
+    lo, hi = field.aabb
+    assert ((out[20:] >= lo) & (out[20:] <= hi)).all()
+    uniform = reg_points(field, pts, 40, torch.Generator().manual_seed(0))
+    assert len({tuple(p.tolist()) for p in uniform[:20]}) > 2
+    with pytest.raises(InputError, match="reg_rays"):
+        cfg.update({"train": {"reg_rays": "weights"}}, "test")
