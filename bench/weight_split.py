@@ -25,6 +25,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from shells.datasets import load_dataset  # noqa: E402
+from shells.fields.neus import may_have_density  # noqa: E402
 from shells.run import RunDir, field_from_checkpoint, read_checkpoint, read_run  # noqa: E402
 from shells.render.volume import render_volume_rays  # noqa: E402
 
@@ -60,7 +61,7 @@ def main() -> int:
                 out = render_volume_rays(field, o[i:i + a.chunk], d[i:i + a.chunk],
                                          a.samples, a.importance, bg)
                 w, f, s = out["weights"], out["sdf"], out["s"]
-                near = f.abs() < h + k * s
+                near = may_have_density(f, s, h, k)
                 classes = (near, ~near & (f < 0), ~near & (f > 0))
                 inb = (torch.ones_like(near) if sim is None else
                        torch.linalg.vector_norm(sim.to_unit(out["points"]), dim=-1) <= 1.0)
