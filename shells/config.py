@@ -93,6 +93,7 @@ class TrainConfig:
     coarse_to_fine_iters: int = 0  # Neuralangelo: the hash levels are switched on one by one
     # over this many steps (0 = all levels from the start)
     coarse_to_fine_start: int = 4  # levels active at step 0 when coarse_to_fine_iters > 0
+    color_loss: str = "l1"  # the colour term: "l1" mean |error| (NeuS), "l2" mean squared error
     n_samples: int = 64  # uniform samples per ray inside the scene box
     n_importance: int = 64  # extra samples per ray drawn from the coarse weights (0 = off)
     lr: float = 1e-2  # Adam learning rate for hash-grid tables
@@ -191,6 +192,7 @@ class FinetuneConfig:
     batch_rays: int = 4096  # rays per step
     pixel_samples: int = 1  # rays per training pixel (k x k jittered, averaged), as in stage 1
     shards: int = 1  # ray shards per step, as in stage 1
+    color_loss: str = "l1"  # the colour loss, as train.color_loss
     lr: float = 1e-3  # Adam learning rate for hash tables
     lr_mlp: float = 1e-4  # Adam learning rate for MLP weights
     warmup_iters: int = 0  # linear learning-rate warm-up
@@ -355,6 +357,8 @@ _RULES = [_rule(k, *r) for k, r in [
     *[(f"train.{k}", _at_least(0)) for k in ("n_importance", "eikonal_weight",
                                             "kernel_smooth_weight", "normal_weight",
                                             "smooth_eps", "eval_max_views", "offband_weight")],
+    *[(f"{s}.color_loss", ((lambda v: v in ("l1", "l2")), "must be 'l1' or 'l2'"))
+      for s in ("train", "finetune")],
     ("train.reg_rays", ((lambda v: v in ("uniform", "level_set")),
                         "must be 'uniform' or 'level_set'")),
     ("train.fd_eps", _positive()),
@@ -432,8 +436,11 @@ def object_config(extent: float, focal_px: float, distance: float) -> Config:
     time), 2048 regulariser points; a hash grid whose finest level resolves half a pixel at the
     cameras' distance (`finest_resolution`: 256 for lego at 1/8, 512 at 1/4), one level per doubling
     above the toy preset's 8 levels and a table twice as large per doubling from 2^18; 3000
-    steps per doubling. Shells on a 256^3 grid, eroded 4 s instead of 1.5 s (``beta_e`` 0.8:
-    on lego the inner shell at 1.5 s cut 1 dB off the band render). BENCHMARKS.md, "Issue 13".
+    steps per doubling. The Eikonal weight is 0.005, not the toy's 0.1: on lego at 1/4 the
+    strong term held the hash grid back (1500 steps: 23.18 dB at 0.1, 25.6 at 0.02, 26.2 at
+    0.005), and the shells of the looser SDF still bound it (band >= full ray). Shells on a
+    256^3 grid, eroded 4 s instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at 1.5 s
+    cut 1 dB off the band render). BENCHMARKS.md, "Issue 13".
     """
     cfg = toy_config()
     res = finest_resolution(extent, focal_px, distance)
@@ -441,7 +448,8 @@ def object_config(extent: float, focal_px: float, distance: float) -> Config:
     cfg.field = dataclasses.replace(cfg.field, max_resolution=res, n_levels=8 + doublings,
                                     log2_hashmap_size=min(21, 18 + doublings))
     cfg.train = dataclasses.replace(cfg.train, sampler="occupancy", iters=3000 * (1 + doublings),
-                                    reg_points=2048, checkpoint_every=500, log_every=50)
+                                    reg_points=2048, eikonal_weight=0.005,
+                                    checkpoint_every=500, log_every=50)
     cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
     cfg.check("object preset")
     return cfg

@@ -2,7 +2,7 @@
 
 Rays are cast against the fixed shells and rendered by the differentiable torch band renderer
 (`shells.render.band.render_band_rays`: the Dr.Jit renderer's ray casting, sample placement
-and solid-end rule), and the field is trained with the L1 colour loss. The steps run in
+and solid-end rule), and the field is trained with the colour loss alone (L1 unless `finetune.color_loss`). The steps run in
 `shells.loop.optimise`; the checkpoint goes to RUN/finetune.pt (stage 1's checkpoint.pt is left
 untouched), with resume. Runs on the CPU (llvm_ad_rgb) or on CUDA (cuda_ad_rgb): the Mitsuba
 variant follows the torch device unless `render.variant` names one.
@@ -21,7 +21,7 @@ from shells.datasets import Dataset, load_dataset
 from shells.device import mitsuba_variant, torch_device
 from shells.errors import InputError, write_json
 from shells.fields.network import ShellField
-from shells.loop import Schedule, join, make_optimizer, optimise, psnr_of
+from shells.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
 from shells.render.band import render_band_rays
 from shells.render.raycast import ShellScene
 from shells.run import RunDir, field_from_checkpoint, load_shells, read_checkpoint, read_run
@@ -30,13 +30,13 @@ from shells.run import RunDir, field_from_checkpoint, load_shells, read_checkpoi
 def stage2_step(field: ShellField, scene: ShellScene, data: Dataset, pixels: torch.Tensor,
                 fc: FinetuneConfig, rc: RenderConfig, background: torch.Tensor,
                 gen: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
-    """L1 colour loss of one shard of a step (``batch_rays / shards`` random rays drawn with
+    """Colour loss (`finetune.color_loss`) of one shard of a step (``batch_rays / shards`` random rays drawn with
     ``gen``) rendered in the band, and its logs."""
     idx, o, d = data.sample_pixel_rays(fc.batch_rays // fc.shards, fc.pixel_samples, gen)
     out = render_band_rays(field, scene, o, d, rc, background)
     pred = out["color"].reshape(len(idx), fc.pixel_samples, 3).mean(1)  # box filter
     target = pixels[idx]
-    loss = (pred - target).abs().mean()
+    loss = color_loss(pred, target, fc.color_loss)
     mse = ((pred.detach().clamp(0, 1) - target) ** 2).mean().item()
     return loss, {"loss": loss.item(), "psnr": psnr_of(mse),
                   "spp": out["spp"].float().mean().item() * fc.pixel_samples}  # per pixel

@@ -100,6 +100,20 @@ def psnr_of(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-10))
 
 
+COLOR_LOSSES = ("l1", "l2")
+
+
+def color_loss(pred: torch.Tensor, target: torch.Tensor, kind: str) -> torch.Tensor:
+    """The colour term of a stage's loss over [N, 3] pixels: "l1" the mean |pred - target|
+    (NeuS), "l2" the mean squared error (Instant-NGP; what PSNR scores)."""
+    diff = pred - target
+    if kind == "l1":
+        return diff.abs().mean()
+    if kind == "l2":
+        return (diff * diff).mean()
+    raise ValueError(f"unknown colour loss {kind!r}; valid: {COLOR_LOSSES}")
+
+
 def join(cfg: Config, section: str, fresh: bool, device: torch.device) -> distributed.World:
     """This process's place in the job (`shells.distributed.world`) for the stage whose config
     section is ``section`` ("train", "finetune"): a fresh run under torchrun with the default

@@ -36,7 +36,7 @@ from shells.errors import InputError, write_json
 from shells.contraction import Similarity
 from shells.fields.network import ShellField
 from shells.fields.neus import may_have_density
-from shells.loop import Schedule, join, make_optimizer, optimise, psnr_of
+from shells.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
 from shells.metrics import psnr
 from shells.render.volume import SpanGrid, render_volume_image, render_volume_rays
 from shells.run import RunDir, read_checkpoint, read_run, write_run
@@ -263,7 +263,7 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
                                      background, gen, span=(near[m], far[m], hit[m]))
             pred[crosses] = out["color"].reshape(-1, spp, 3).mean(1)  # box filter
     target = pixels[idx]
-    color = (pred - target).abs().mean()
+    color = color_loss(pred, target, tc.color_loss)
     zero = color.new_zeros(())
     if out is None:
         points, off, share, near_ls = o.new_zeros(0, 3), zero, zero, None
@@ -282,7 +282,7 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
         loss = loss + tc.offband_weight * off
     with torch.no_grad():
         mse = ((pred.clamp(0, 1) - target) ** 2).mean().item()
-    return loss, {"loss": loss.item(), "color_l1": color.item(),
+    return loss, {"loss": loss.item(), "color": color.item(),
                   "eikonal": reg["eikonal"].item(), "normal": reg["normal"].item(),
                   "smooth": reg["smooth"].item(), "w_normal": w_normal, "psnr": psnr_of(mse),
                   "off_band": float(share),

@@ -329,3 +329,23 @@ def test_level_set_regulariser_points_come_from_weight_and_band(tiny_blender):
     assert len({tuple(p.tolist()) for p in uniform[:20]}) > 2
     with pytest.raises(InputError, match="reg_rays"):
         cfg.update({"train": {"reg_rays": "weights"}}, "test")
+
+
+def test_color_losses_hand_worked():
+    """'l1' is the mean |error| over pixels and channels, 'l2' the mean squared error, with
+    their gradients; any other name is a one-line config error in either stage."""
+    from shells.loop import color_loss
+
+    pred = torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.0, 0.2]], requires_grad=True)
+    target = torch.tensor([[0.3, 0.5, 0.9], [1.0, 0.6, 0.2]])
+    l1 = color_loss(pred, target, "l1")
+    assert l1.item() == pytest.approx((0.2 + 0.4 + 0.6) / 6)
+    l2 = color_loss(pred, target, "l2")
+    assert l2.item() == pytest.approx((0.04 + 0.16 + 0.36) / 6)
+    l2.backward()
+    assert torch.allclose(pred.grad, 2 * (pred - target).detach() / 6)
+    cfg = toy_config()
+    for section in ("train", "finetune"):
+        cfg.update({section: {"color_loss": "l2"}}, "test")
+        with pytest.raises(InputError, match=f"{section}.color_loss"):
+            cfg.update({section: {"color_loss": "huber"}}, "test")
