@@ -440,7 +440,8 @@ def object_config(extent: float, focal_px: float, distance: float) -> Config:
     strong term held the hash grid back (1500 steps: 23.18 dB at 0.1, 25.6 at 0.02, 26.2 at
     0.005), and the shells of the looser SDF still bound it (band >= full ray). Shells on a
     256^3 grid, eroded 4 s instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at 1.5 s
-    cut 1 dB off the band render). BENCHMARKS.md, "Issue 13".
+    cut 1 dB off the band render). Above the 1/8 sizes stage 2 runs longer (500 + 1000 steps
+    per doubling, 4096 rays each). BENCHMARKS.md, "Issue 13".
     """
     cfg = toy_config()
     res = finest_resolution(extent, focal_px, distance)
@@ -451,6 +452,11 @@ def object_config(extent: float, focal_px: float, distance: float) -> Config:
                                     reg_points=2048, eikonal_weight=0.005,
                                     checkpoint_every=500, log_every=50)
     cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
+    if doublings:  # a longer stage 2 for larger images: 1500 steps of 4096 rays instead of the
+        # toy's 500 of 1024 (lego 1/4 after 40 min of stage 1: band 30.69 dB against 29.99,
+        # for 100 s of stage 2 instead of 21 s)
+        cfg.finetune = dataclasses.replace(cfg.finetune, iters=500 + 1000 * doublings,
+                                           batch_rays=4096)
     cfg.check("object preset")
     return cfg
 

@@ -160,7 +160,11 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     assert cfg.field.max_resolution == 512
     assert preset_config("auto", big, 2, cpu)[0].field.max_resolution == 256
     assert preset_config("auto", big, 2, cpu)[1] == "toy"  # 64 px a side
-    assert preset_config("object", big, 2, cpu)[0].field.max_resolution == 256
+    half = preset_config("object", big, 2, cpu)[0]
+    assert half.field.max_resolution == 256
+    # one doubling above 256: a longer stage 2 (500 + 1000 steps of 4096 rays); none at 256
+    assert (cfg.finetune.iters, cfg.finetune.batch_rays) == (1500, 4096)
+    assert (half.finetune.iters, half.finetune.batch_rays) == (500, 1024)
     assert preset_config("paper", big, 1, cpu)[1] == "paper"
 
 
