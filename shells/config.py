@@ -428,7 +428,8 @@ def finest_resolution(extent: float, focal_px: float, distance: float) -> int:
     return max(64, 2 ** math.ceil(math.log2(max(cells, 1.0))))
 
 
-def object_config(extent: float, focal_px: float, distance: float) -> Config:
+def object_config(extent: float, focal_px: float, distance: float,
+                  eikonal_weight: float = 0.005) -> Config:
     """Real objects on the CPU (NeRF-synthetic, photos; 2 cores), sized from the data.
 
     The toy preset with stage 1's empty-space skipping (``sampler`` "occupancy"; the toy's 32 +
@@ -438,7 +439,8 @@ def object_config(extent: float, focal_px: float, distance: float) -> Config:
     above the toy preset's 8 levels and a table twice as large per doubling from 2^18; 3000
     steps per doubling. The Eikonal weight is 0.005, not the toy's 0.1: on lego at 1/4 the
     strong term held the hash grid back (1500 steps: 23.18 dB at 0.1, 25.6 at 0.02, 26.2 at
-    0.005), and the shells of the looser SDF still bound it (band >= full ray). Shells on a
+    0.005), and the shells of the looser SDF still bound it (band >= full ray); unbounded
+    captures pass 0.1 (`shells.training.preset_config`). Shells on a
     256^3 grid, eroded 4 s instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at 1.5 s
     cut 1 dB off the band render). Above the 1/8 sizes stage 2 runs longer (500 + 1000 steps
     per doubling, 4096 rays each). BENCHMARKS.md, "Issue 13".
@@ -449,7 +451,7 @@ def object_config(extent: float, focal_px: float, distance: float) -> Config:
     cfg.field = dataclasses.replace(cfg.field, max_resolution=res, n_levels=8 + doublings,
                                     log2_hashmap_size=min(21, 18 + doublings))
     cfg.train = dataclasses.replace(cfg.train, sampler="occupancy", iters=3000 * (1 + doublings),
-                                    reg_points=2048, eikonal_weight=0.005,
+                                    reg_points=2048, eikonal_weight=eikonal_weight,
                                     checkpoint_every=500, log_every=50)
     cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
     if doublings:  # a longer stage 2 for larger images: 1500 steps of 4096 rays instead of the

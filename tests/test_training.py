@@ -165,6 +165,11 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     # one doubling above 256: a longer stage 2 (500 + 1000 steps of 4096 rays); none at 256
     assert (cfg.finetune.iters, cfg.finetune.batch_rays) == (1500, 4096)
     assert (half.finetune.iters, half.finetune.batch_rays) == (500, 1024)
+    # the weak Eikonal term is for bounded objects; an unbounded capture keeps the toy's 0.1
+    from shells.contraction import Similarity
+    assert cfg.train.eikonal_weight == 0.005
+    sim = Similarity(centre=(0.0, 0.0, 0.0), radius=1.0)
+    assert preset_config("object", big, 1, cpu, sim=sim)[0].train.eikonal_weight == 0.1
     assert preset_config("paper", big, 1, cpu)[1] == "paper"
 
 
