@@ -23,6 +23,8 @@ from typing import Any
 
 from shells.errors import InputError
 
+COLOR_LOSSES = ("l1", "l2")  # train.color_loss, finetune.color_loss (`shells.loop.color_loss`)
+
 
 @dataclass
 class DataConfig:
@@ -357,7 +359,7 @@ _RULES = [_rule(k, *r) for k, r in [
     *[(f"train.{k}", _at_least(0)) for k in ("n_importance", "eikonal_weight",
                                             "kernel_smooth_weight", "normal_weight",
                                             "smooth_eps", "eval_max_views", "offband_weight")],
-    *[(f"{s}.color_loss", ((lambda v: v in ("l1", "l2")), "must be 'l1' or 'l2'"))
+    *[(f"{s}.color_loss", ((lambda v: v in COLOR_LOSSES), f"must be one of {COLOR_LOSSES}"))
       for s in ("train", "finetune")],
     ("train.reg_rays", ((lambda v: v in ("uniform", "level_set")),
                         "must be 'uniform' or 'level_set'")),

@@ -2,10 +2,11 @@
 
 Rays are cast against the fixed shells and rendered by the differentiable torch band renderer
 (`shells.render.band.render_band_rays`: the Dr.Jit renderer's ray casting, sample placement
-and solid-end rule), and the field is trained with the colour loss alone (L1 unless `finetune.color_loss`). The steps run in
-`shells.loop.optimise`; the checkpoint goes to RUN/finetune.pt (stage 1's checkpoint.pt is left
-untouched), with resume. Runs on the CPU (llvm_ad_rgb) or on CUDA (cuda_ad_rgb): the Mitsuba
-variant follows the torch device unless `render.variant` names one.
+and solid-end rule), and the field is trained with the colour loss alone (L1 unless
+`finetune.color_loss` says "l2"). The steps run in `shells.loop.optimise`; the checkpoint
+goes to RUN/finetune.pt (stage 1's checkpoint.pt is left untouched), with resume. Runs on the
+CPU (llvm_ad_rgb) or on CUDA (cuda_ad_rgb): the Mitsuba variant follows the torch device
+unless `render.variant` names one.
 """
 
 from __future__ import annotations
@@ -30,8 +31,8 @@ from shells.run import RunDir, field_from_checkpoint, load_shells, read_checkpoi
 def stage2_step(field: ShellField, scene: ShellScene, data: Dataset, pixels: torch.Tensor,
                 fc: FinetuneConfig, rc: RenderConfig, background: torch.Tensor,
                 gen: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
-    """Colour loss (`finetune.color_loss`) of one shard of a step (``batch_rays / shards`` random rays drawn with
-    ``gen``) rendered in the band, and its logs."""
+    """Colour loss (`finetune.color_loss`) of one shard of a step (``batch_rays / shards``
+    random rays drawn with ``gen``) rendered in the band, and its logs."""
     idx, o, d = data.sample_pixel_rays(fc.batch_rays // fc.shards, fc.pixel_samples, gen)
     out = render_band_rays(field, scene, o, d, rc, background)
     pred = out["color"].reshape(len(idx), fc.pixel_samples, 3).mean(1)  # box filter

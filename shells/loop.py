@@ -40,7 +40,7 @@ import torch
 from tqdm.auto import tqdm
 
 from shells import distributed
-from shells.config import Config
+from shells.config import COLOR_LOSSES, Config
 from shells.errors import InputError, Interrupted
 from shells.fields.hashgrid import HashGrid
 from shells.fields.network import ShellField
@@ -98,9 +98,6 @@ def step_generator(seed: int, step: int, device: torch.device,
 
 def psnr_of(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-10))
-
-
-COLOR_LOSSES = ("l1", "l2")
 
 
 def color_loss(pred: torch.Tensor, target: torch.Tensor, kind: str) -> torch.Tensor:
