@@ -442,9 +442,9 @@ def object_config(extent: float, focal_px: float, distance: float,
     steps per doubling. The Eikonal weight is 0.005, not the toy's 0.1: on lego at 1/4 the
     strong term held the hash grid back (1500 steps: 23.18 dB at 0.1, 25.6 at 0.02, 26.2 at
     0.005), and the shells of the looser SDF still bound it (band >= full ray); unbounded
-    captures pass 0.1 (`shells.training.preset_config`). Shells on a
-    256^3 grid, eroded 4 s instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at 1.5 s
-    cut 1 dB off the band render). Above the 1/8 sizes stage 2 runs longer (500 + 1000 steps
+    captures pass 0.1 (`shells.training.preset_config`). Shells on a 256^3 grid, eroded 4 s
+    instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at 1.5 s cut 1 dB off the band
+    render). Above the 1/8 sizes stage 2 runs longer (500 + 1000 steps
     per doubling, 4096 rays each). BENCHMARKS.md, "Issue 13".
     """
     cfg = toy_config()

@@ -97,11 +97,11 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
     if sim is not None:  # sized for the field-space box, centre +- 2 radius
         centre = torch.tensor(sim.centre, dtype=torch.float64)
         distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
-        # the toy's Eikonal weight 0.1, not the bounded preset's 0.005: on fox the weak term
-        # put more of the weight inside solids, off the level set, which the shells skip
-        # (band after stage 2 16.4 dB against 20.0; BENCHMARKS.md, tenth session)
-        return object_config(4.0 * sim.radius, float(cams.fx.double().median()),
-                             distance, eikonal_weight=0.1), "object"
+        # the default Eikonal weight, not the bounded preset's 0.005: on fox the weak term
+        # gained 0.3 dB full ray but cost the band after stage 2 3.6 dB (16.4 against 20.0;
+        # BENCHMARKS.md, tenth session)
+        return object_config(4.0 * sim.radius, float(cams.fx.double().median()), distance,
+                             eikonal_weight=TrainConfig.eikonal_weight), "object"
     box = frames.aabb.double()
     centre = 0.5 * (box[0] + box[1])
     distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
