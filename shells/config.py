@@ -96,6 +96,10 @@ class TrainConfig:
     # over this many steps (0 = all levels from the start)
     coarse_to_fine_start: int = 4  # levels active at step 0 when coarse_to_fine_iters > 0
     color_loss: str = "l1"  # the colour term: "l1" mean |error| (NeuS), "l2" mean squared error
+    random_background: bool = False  # RGBA data: each training pixel on a random colour, drawn
+    # per pixel and step, and its rays rendered on the same colour (Instant-NGP), so the field
+    # cannot keep unseen matter coloured like the background; no effect on data without alpha
+    # or on an unbounded field (its rays all end on the far solid)
     n_samples: int = 64  # uniform samples per ray inside the scene box
     n_importance: int = 64  # extra samples per ray drawn from the coarse weights (0 = off)
     lr: float = 1e-2  # Adam learning rate for hash-grid tables
@@ -436,16 +440,19 @@ def object_config(extent: float, focal_px: float, distance: float,
 
     The toy preset with stage 1's empty-space skipping (``sampler`` "occupancy"; the toy's 32 +
     16 samples per ray, now on the occupied span: 16 + 16 was 1.1 dB worse on lego at equal
-    time), 2048 regulariser points; a hash grid whose finest level resolves half a pixel at the
-    cameras' distance (`finest_resolution`: 256 for lego at 1/8, 512 at 1/4), one level per doubling
-    above the toy preset's 8 levels and a table twice as large per doubling from 2^18; 3000
-    steps per doubling. The Eikonal weight is 0.005, not the toy's 0.1: on lego at 1/4 the
-    strong term held the hash grid back (1500 steps: 23.18 dB at 0.1, 25.6 at 0.02, 26.2 at
-    0.005), and the shells of the looser SDF still bound it (band >= full ray); unbounded
-    captures pass 0.1 (`shells.training.preset_config`). Shells on a 256^3 grid, eroded 4 s
-    instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at 1.5 s cut 1 dB off the band
-    render). Above the 1/8 sizes stage 2 runs longer (500 + 1000 steps
-    per doubling, 4096 rays each). BENCHMARKS.md, "Issue 13".
+    time), 2048 regulariser points; a hash grid whose finest level resolves half a pixel at
+    the cameras' distance (`finest_resolution`: 256 for lego at 1/8, 512 at 1/4), one level per
+    doubling above the toy preset's 8 levels and a table twice as large per doubling from
+    2^18; 3000 steps per doubling. The Eikonal weight is 0.005, not the toy's 0.1: on lego at
+    1/4 the strong term held the hash grid back (1500 steps: 23.18 dB at 0.1, 25.6 at 0.02,
+    26.2 at 0.005), and the shells of the looser SDF still bound it (band >= full ray);
+    unbounded captures pass 0.1 (`shells.training.preset_config`). Training pixels of RGBA
+    data go on random backgrounds (``random_background``; no effect without alpha): on white
+    alone, lego's field kept an unseen white solid under its base plate that the shells had to
+    enclose (1/8: band 4.65 samples/px; on random backgrounds 2.05, and 0.2 dB higher). Shells
+    on a 256^3 grid, eroded 4 s instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at
+    1.5 s cut 1 dB off the band render). Above the 1/8 sizes stage 2 runs longer (500 + 1000
+    steps per doubling, 4096 rays each). BENCHMARKS.md, "Issue 13".
     """
     cfg = toy_config()
     res = finest_resolution(extent, focal_px, distance)
@@ -454,7 +461,7 @@ def object_config(extent: float, focal_px: float, distance: float,
                                     log2_hashmap_size=min(21, 18 + doublings))
     cfg.train = dataclasses.replace(cfg.train, sampler="occupancy", iters=3000 * (1 + doublings),
                                     reg_points=2048, eikonal_weight=eikonal_weight,
-                                    checkpoint_every=500, log_every=50)
+                                    random_background=True, checkpoint_every=500, log_every=50)
     cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
     if doublings:  # a longer stage 2 for larger images: 1500 steps of 4096 rays instead of the
         # toy's 500 of 1024 (lego 1/4 after 40 min of stage 1: band 30.69 dB against 29.99,

@@ -241,31 +241,52 @@ def normal_factor(step: int, tc: TrainConfig) -> float:
     return min(1.0, (step - tc.normal_delay + 1) / tc.normal_ramp)
 
 
+def random_backgrounds(idx: torch.Tensor,  # [P] flat pixel indices of a step
+                       pixels: torch.Tensor,  # [N, 3] training pixels composited on `background`
+                       alpha: torch.Tensor,  # [N] their alpha
+                       background: torch.Tensor,  # [3] the data's compositing colour
+                       gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """``train.random_background``: a uniform random colour b per pixel and the pixel
+    recomposited on it, c + (b - background) (1 - alpha), exact because compositing is linear
+    (also after area downscaling). Returns b [P, 3] and the targets [P, 3]."""
+    bg = torch.rand(len(idx), 3, generator=gen, device=gen.device).to(pixels.device)
+    return bg, pixels[idx] + (bg - background) * (1.0 - alpha[idx])[:, None]
+
+
 def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: TrainConfig,
                 background: torch.Tensor, gen: torch.Generator,
                 grid: SpanGrid | None = None, step: int = 0,
+                alpha: torch.Tensor | None = None,
                 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Loss of one shard of step ``step`` and its scalar logs. "box" sampler (``grid`` None):
     ``batch_rays / shards`` random rays drawn with ``gen``; "occupancy": `draw_pixels`. The
-    normal term's weight follows `normal_factor`."""
+    normal term's weight follows `normal_factor`. ``alpha`` [N] (the pixels' alpha): each
+    pixel on a random background (`random_backgrounds`); None: all on ``background``."""
     spp = tc.pixel_samples
     n_rays = tc.batch_rays // tc.shards
     if grid is None:
         idx, o, d = data.sample_pixel_rays(n_rays, spp, gen)
-        out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, background, gen)
+    else:
+        idx, o, d, near, far, hit, crosses = draw_pixels(data, grid, n_rays, spp, gen)
+    if alpha is None:
+        target, ray_bg, pixel_bg = pixels[idx], background, background.expand(len(idx), 3)
+    else:
+        pixel_bg, target = random_backgrounds(idx, pixels, alpha, background, gen)
+        ray_bg = pixel_bg.repeat_interleave(spp, dim=0)
+    if grid is None:
+        out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, ray_bg, gen)
         pred = out["color"].reshape(len(idx), spp, 3).mean(1)  # box filter
         rendered = len(o)
     else:
-        idx, o, d, near, far, hit, crosses = draw_pixels(data, grid, n_rays, spp, gen)
         m = crosses.repeat_interleave(spp)  # the rays of the pixels that cross
-        pred = background.expand(len(idx), 3).clone()
+        pred = pixel_bg.clone()
         rendered = int(m.sum())
         out = None
         if rendered:
             out = render_volume_rays(field, o[m], d[m], tc.n_samples, tc.n_importance,
-                                     background, gen, span=(near[m], far[m], hit[m]))
+                                     ray_bg if alpha is None else ray_bg[m], gen,
+                                     span=(near[m], far[m], hit[m]))
             pred[crosses] = out["color"].reshape(-1, spp, 3).mean(1)  # box filter
-    target = pixels[idx]
     color = color_loss(pred, target, tc.color_loss)
     zero = color.new_zeros(())
     if out is None:
@@ -371,6 +392,10 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
         write_run(run, data_dir, downscale, str(device), cfg)
     pixels = data.images.reshape(-1, 3).to(device)
     background = torch.tensor(cfg.data.background, device=device, dtype=torch.float32)
+    # random backgrounds where a background shows: RGBA data and a bounded field (every ray of
+    # an unbounded one ends on its far solid)
+    alpha = (data.alpha.reshape(-1).to(device) if tc.random_background and data.alpha is not None
+             and field.similarity is None else None)
     grid = (SpanGrid(field.aabb, tc.occ_resolution, tc.occ_k)
             if tc.sampler == "occupancy" else None)
     at = [0]  # the step being taken (before_step runs first)
@@ -381,7 +406,7 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
 
     summary = optimise(field, opt, cfg, Schedule.of("stage 1", tc),
                        lambda gen: stage1_step(field, data, pixels, tc, background, gen, grid,
-                                               at[0]),
+                                               at[0], alpha),
                        run.checkpoint("stage1"), run.log("stage1"), device, resume=ckpt,
                        stop_at=stop_at, progress=progress, before_step=before, state=grid)
     field.active_levels = None  # what the checkpoint's users evaluate: every level

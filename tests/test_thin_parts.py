@@ -12,18 +12,11 @@ open part."""
 
 from __future__ import annotations
 
-import json
-
-
-import numpy as np
 import pytest
 import torch
 
 from scenes import make_scene
-from scenes.cameras import pixel_rays_gl
-from scenes.content import thin_parts
-from scenes.dataset import CAMERA_ANGLE_X
-from scenes.opacity import first_hit
+from scenes.parts import PARTS, part_scores
 from shells.datasets import load_dataset
 from shells.render.volume import render_volume_image
 from shells.training import preset_config, stage1_grid, train
@@ -50,31 +43,18 @@ def trained(tmp_path_factory: pytest.TempPathFactory):
 def test_the_thin_plate_is_kept(trained) -> None:
     data, field, cfg, grid = trained
     test = load_dataset(data, "test", background=cfg.data.background)
-    frames = json.loads((data / "transforms_test.json").read_text())["frames"]
-    spec = thin_parts(np.random.default_rng(0))
-    err = {0: [], 1: [], 2: []}  # sphere, rod, plate: |error| per covered pixel
-    opac = {0: [], 1: [], 2: []}
     H, W = test.images.shape[1:3]
     bg = torch.tensor(cfg.data.background)
-    for i in range(len(test.cameras)):
-        c2w = np.asarray(frames[i]["transform_matrix"], np.float64)
-        o, d = pixel_rays_gl(c2w, CAMERA_ANGLE_X, W, H)
-        _, ids = first_hit(spec, o.reshape(-1, 3), d.reshape(-1, 3))
+
+    def render(i: int):
         ro, rd = test.cameras.pixel_rays(i, 1)
         img = render_volume_image(field, ro, rd, cfg.train.n_samples, cfg.train.n_importance, bg,
                                   grid=grid)
-        pred = img["color"].reshape(H, W, 3).numpy()
-        gt = test.images[i].numpy()
-        alpha = test.alpha[i].numpy().reshape(-1)
-        e = np.abs(pred - gt).mean(-1).reshape(-1)
-        o_ = img["opacity"].numpy()
-        for k in err:
-            m = (ids == k) & (alpha > 0.99)
-            err[k].append(e[m])
-            opac[k].append(o_[m])
-    err = {k: np.concatenate(v) for k, v in err.items()}
-    opac = {k: np.concatenate(v) for k, v in opac.items()}
-    assert len(err[1]) >= 20 and len(err[2]) >= 20, "too few rod / plate pixels in the views"
-    assert opac[2].mean() >= 0.9, f"plate: mean opacity {opac[2].mean():.3f}"
-    assert err[2].mean() <= err[0].mean(), (
-        f"plate: mean |error| {err[2].mean():.4f} > sphere's {err[0].mean():.4f}")
+        return img["color"].reshape(H, W, 3).numpy(), img["opacity"].numpy()
+
+    parts = part_scores(data, test.images.numpy(), test.alpha.numpy(), render)
+    sphere, rod, plate = (parts[k] for k in PARTS)
+    assert rod["pixels"] >= 20 and plate["pixels"] >= 20, "too few rod / plate pixels"
+    assert plate["opacity"] >= 0.9, f"plate: mean opacity {plate['opacity']:.3f}"
+    assert plate["error"] <= sphere["error"], (
+        f"plate: mean |error| {plate['error']:.4f} > sphere's {sphere['error']:.4f}")

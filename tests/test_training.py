@@ -171,6 +171,10 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     sim = Similarity(centre=(0.0, 0.0, 0.0), radius=1.0)
     assert preset_config("object", big, 1, cpu, sim=sim)[0].train.eikonal_weight == 0.1
     assert preset_config("paper", big, 1, cpu)[1] == "paper"
+    # RGBA objects train on random backgrounds; the toy and paper presets on the data's colour
+    assert cfg.train.random_background and half.train.random_background
+    assert not preset_config("toy", big, 1, cpu)[0].train.random_background
+    assert not preset_config("paper", big, 1, cpu)[0].train.random_background
 
 
 def test_train_cli_errors(tiny_blender, tmp_path, capsys):
@@ -358,3 +362,57 @@ def test_color_losses_hand_worked():
         cfg.update({section: {"color_loss": "l2"}}, "test")
         with pytest.raises(InputError, match=f"{section}.color_loss"):
             cfg.update({section: {"color_loss": "huber"}}, "test")
+
+
+def test_random_background_targets_hand_worked():
+    """train.random_background: a pixel composited on white is recomposited on the drawn
+    colour b exactly: straight colour c, alpha a -> a c + (1 - a) b."""
+    from shells.training import random_backgrounds
+
+    c = torch.tensor([[0.2, 0.4, 0.6], [0.9, 0.1, 0.3], [0.5, 0.5, 0.5]])
+    a = torch.tensor([0.25, 1.0, 0.0])
+    white = torch.ones(3)
+    pixels = a[:, None] * c + (1 - a[:, None]) * white  # as the loader stores them
+    assert torch.allclose(pixels[0], torch.tensor([0.8, 0.85, 0.9]))
+    idx = torch.tensor([2, 0, 1, 0])
+    bg, target = random_backgrounds(idx, pixels, a, white, torch.Generator().manual_seed(3))
+    want_bg = torch.rand(4, 3, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(bg, want_bg)  # one uniform colour per drawn pixel
+    want = a[idx, None] * c[idx] + (1 - a[idx, None]) * want_bg
+    torch.testing.assert_close(target, want, rtol=0, atol=1e-6)
+    assert torch.equal(target[2], pixels[1])  # opaque: unchanged
+    torch.testing.assert_close(target[0], want_bg[0], rtol=0, atol=1e-6)  # transparent: b
+    assert not torch.allclose(bg[1], bg[3])  # the same pixel twice gets two colours
+
+
+@pytest.mark.parametrize("sampler", ["box", "occupancy"])
+def test_random_background_renders_each_ray_on_its_colour(tiny_blender, sampler):
+    """A step with random backgrounds: a pixel whose ray carries no opacity is rendered as its
+    own drawn colour, so a fully transparent one has zero error (not white against b)."""
+    from shells.datasets import load_dataset
+    from shells.render.volume import SpanGrid
+    from shells.training import build_field, random_backgrounds, stage1_step
+
+    cfg = _tiny_config(sampler)
+    data = load_dataset(tiny_blender, "train")
+    assert data.alpha is not None and float(data.alpha.min()) == 0.0
+    field = build_field(cfg, data.aabb, torch.device("cpu"))
+    grid = None
+    if sampler == "occupancy":
+        grid = SpanGrid(field.aabb, 16, cfg.train.occ_k)
+        grid.update(field)
+    pixels = torch.ones_like(data.images.reshape(-1, 3))  # every pixel transparent (white
+    alpha = torch.zeros(len(pixels))  # with alpha 0): the targets are the drawn colours
+    for p in field.geo_mlp.parameters():  # a field with no opacity anywhere: f >> s
+        p.data.zero_()
+    field.geo_mlp[-1].bias.data[0] = 10.0
+    cfg.train.color_loss = "l1"
+    loss, logs = stage1_step(field, data, pixels, cfg.train, torch.ones(3),
+                             torch.Generator().manual_seed(0), grid, 0, alpha)
+    assert logs["color"] < 1e-4  # on white it would be |b - 1|, about 0.5
+    loss_w, logs_w = stage1_step(field, data, pixels, cfg.train,
+                                 torch.ones(3), torch.Generator().manual_seed(0), grid, 0, None)
+    assert logs_w["color"] < 1e-4  # the same field on white against white targets
+    _, target = random_backgrounds(torch.arange(4), pixels, alpha, torch.ones(3),
+                                   torch.Generator().manual_seed(0))
+    assert float((target - 1).abs().mean()) > 0.2

@@ -1,0 +1,78 @@
+"""Does stage 1 keep thin parts? The `thin-parts` toy scene's rod and plate against its sphere.
+
+    python bench/thin_parts.py --out OUT [--config CFG.json] [--iters 1500] [--test-views 6]
+
+Renders the scene as `tests/test_thin_parts.py` does (64x64, 32 train views, ``--test-views``
+test views) into OUT/data unless it is there, trains stage 1 with what the test trains (the
+toy preset, ``--preset auto`` at 64 px, with the "occupancy" sampler and ``--iters`` steps)
+plus ``--config`` on top, and prints JSON: per part (`scenes.parts.part_scores`) the test
+pixels, mean |error| and mean opacity of the full-ray render (stage 1's own sampler), the
+error ratios rod / sphere and plate / sphere (issue 13 asks for <= 1), and the training
+seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from scenes import make_scene  # noqa: E402
+from scenes.parts import part_scores  # noqa: E402
+from shells.config import read_config_file  # noqa: E402
+from shells.datasets import load_dataset  # noqa: E402
+from shells.render.volume import render_volume_image  # noqa: E402
+from shells.run import RunDir, field_from_checkpoint, read_checkpoint  # noqa: E402
+from shells.training import preset_config, stage1_grid, train  # noqa: E402
+
+from report import emit_json  # noqa: E402
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", required=True)
+    p.add_argument("--config", default=None, help="JSON overrides on top of the test's config")
+    p.add_argument("--iters", type=int, default=1500)
+    p.add_argument("--test-views", type=int, default=6, help="6: the test's data set")
+    a = p.parse_args()
+    out = Path(a.out)
+    data = out / "data"
+    if not (data / "transforms_test.json").is_file():
+        make_scene("thin-parts", data, res=64, views=32, test_views=a.test_views)
+    cpu = torch.device("cpu")
+    cfg, preset = preset_config("auto", data, 1, cpu)
+    cfg.update({"train": {"sampler": "occupancy", "iters": a.iters}}, "bench/thin_parts.py")
+    if a.config:
+        cfg.update(read_config_file(a.config), a.config)
+    run = out / "run"
+    shutil.rmtree(run, ignore_errors=True)
+    summary = train(data, run, cfg, cpu, progress=False, evaluate_test=False)
+    ckpt = read_checkpoint(RunDir(run))
+    field, cfg = field_from_checkpoint(ckpt, str(run))
+    grid = stage1_grid(ckpt, field, cfg)
+    test = load_dataset(data, "test", background=cfg.data.background)
+    H, W = test.images.shape[1:3]
+    bg = torch.tensor(cfg.data.background)
+
+    def render(i: int):
+        ro, rd = test.cameras.pixel_rays(i, 1)
+        with torch.no_grad():
+            img = render_volume_image(field, ro, rd, cfg.train.n_samples, cfg.train.n_importance,
+                                      bg, grid=grid)
+        return img["color"].reshape(H, W, 3).numpy(), img["opacity"].numpy()
+
+    parts = part_scores(data, test.images.numpy(), test.alpha.numpy(), render)
+    emit_json({"preset": preset, "config": a.config, "iters": a.iters,
+               "train_s": summary["seconds"], "parts": parts,
+               "rod_over_sphere": parts["rod"]["error"] / parts["sphere"]["error"],
+               "plate_over_sphere": parts["plate"]["error"] / parts["sphere"]["error"]})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
