@@ -41,11 +41,11 @@ def part_scores(data: str | Path,  # the thin-parts data set (make_scene)
         _, ids = first_hit(spec, o.reshape(-1, 3), d.reshape(-1, 3))
         rgb, opacity = render(i)
         e = np.abs(rgb - images[i]).mean(-1).reshape(-1)
-        a = alpha[i].reshape(-1)
+        a, opacity = alpha[i].reshape(-1), np.asarray(opacity).reshape(-1)
         for k in err:
             m = (ids == k) & (a > 0.99)
             err[k].append(e[m])
-            opac[k].append(np.asarray(opacity).reshape(-1)[m])
+            opac[k].append(opacity[m])
     out = {}
     for k, name in enumerate(PARTS):
         e, o_ = np.concatenate(err[k]), np.concatenate(opac[k])

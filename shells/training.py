@@ -269,10 +269,10 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
     else:
         idx, o, d, near, far, hit, crosses = draw_pixels(data, grid, n_rays, spp, gen)
     if alpha is None:
-        target, ray_bg, pixel_bg = pixels[idx], background, background.expand(len(idx), 3)
+        target, pixel_bg = pixels[idx], background.expand(len(idx), 3)
     else:
         pixel_bg, target = random_backgrounds(idx, pixels, alpha, background, gen)
-        ray_bg = pixel_bg.repeat_interleave(spp, dim=0)
+    ray_bg = pixel_bg.repeat_interleave(spp, dim=0)  # [P * spp, 3], a pixel's rays contiguous
     if grid is None:
         out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, ray_bg, gen)
         pred = out["color"].reshape(len(idx), spp, 3).mean(1)  # box filter
@@ -284,7 +284,7 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
         out = None
         if rendered:
             out = render_volume_rays(field, o[m], d[m], tc.n_samples, tc.n_importance,
-                                     ray_bg if alpha is None else ray_bg[m], gen,
+                                     ray_bg[m], gen,
                                      span=(near[m], far[m], hit[m]))
             pred[crosses] = out["color"].reshape(-1, spp, 3).mean(1)  # box filter
     color = color_loss(pred, target, tc.color_loss)
