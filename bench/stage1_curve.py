@@ -15,7 +15,8 @@ which retraces the uninterrupted run exactly); after each piece the checkpoint i
 the test views (full-ray, the run's own sampler), off the clock. The wall time of a point is
 the sum of the pieces' training seconds. Writes OUT/curve.json (every point, rays/s and
 samples/s of each run), OUT/curve.png (matplotlib) and prints a Markdown table. ``--iters-old``
-and ``--iters-new`` set the runs' lengths (default: the presets' own); ``--only`` trains one.
+and ``--iters-new`` set the runs' lengths (default: the presets' own); ``--only`` trains one;
+``--config-new FILE`` applies a config file on top of the new run's preset.
 ``--replot A/curve.json[:LABEL] B/curve.json[:LABEL] ...`` trains nothing and draws the runs of
 earlier invocations in one plot and table (a run named again gets " (LABEL)" appended).
 """
@@ -33,7 +34,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from shells.config import toy_config  # noqa: E402
+from shells.config import read_config_file, toy_config  # noqa: E402
 from shells.datasets import load_dataset  # noqa: E402
 from shells.run import RunDir, field_from_checkpoint, read_checkpoint  # noqa: E402
 from shells.training import evaluate, preset_config, stage1_grid, train  # noqa: E402
@@ -126,6 +127,8 @@ def main() -> int:
     p.add_argument("--iters-old", type=int, default=None)
     p.add_argument("--iters-new", type=int, default=None)
     p.add_argument("--only", choices=["old", "new"], default=None, help="train one of them")
+    p.add_argument("--config-new", default=None, metavar="JSON",
+                   help="a config file applied on top of the new run's preset (a probe)")
     p.add_argument("--replot", nargs="+", default=None, metavar="CURVE_JSON[:LABEL]")
     args = p.parse_args()
     device = torch.device("cpu")
@@ -141,11 +144,14 @@ def main() -> int:
     for cfg, iters in ((old, args.iters_old), (new, args.iters_new)):
         if iters is not None:
             cfg.update({"train": {"iters": iters}}, "bench")
+    if args.config_new:
+        new.update(read_config_file(args.config_new), args.config_new)
     res = {}
     for name, cfg in (("old", old), ("new", new)):
         if args.only in (None, name):
             res[name] = curve(name, cfg, args, test, device)
     meta = {"data": args.data, "downscale": args.downscale, "new_preset": preset,
+            "config_new": args.config_new,
             "torch_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d")}
     (out / "curve.json").write_text(json.dumps({"meta": meta, "runs": res}, indent=2) + "\n")
     plot(res, out / "curve.png", f"{Path(args.data).name} 1/{args.downscale}, stage 1, "

@@ -37,11 +37,14 @@ SIZES = [("fresh, the run's sizes", {}),
          ("fresh, 9 levels, 2^17, finest 512",
           dict(n_levels=9, log2_hashmap_size=17, max_resolution=512))]
 
-SETTINGS = [("box, 32 + 16, 4096 regulariser points", "box", 32, 16, 4096),
-            ("occupancy, 32 + 16, 2048", "occupancy", 32, 16, 2048),
-            ("occupancy, 16 + 16, 2048", "occupancy", 16, 16, 2048),
-            ("occupancy, 24 + 8, 2048", "occupancy", 24, 8, 2048),
-            ("occupancy, 16 + 16, 1024", "occupancy", 16, 16, 1024)]
+SETTINGS = [("box, 32 + 16, 4096 regulariser points", "box", 32, 16, 4096, 0.0),
+            ("occupancy, 32 + 16, 2048", "occupancy", 32, 16, 2048, 0.0),
+            ("occupancy, 32 + 16, 2048, culled below 1e-4", "occupancy", 32, 16, 2048, 1e-4),
+            ("occupancy, 32 + 16, 2048, culled below 1e-3", "occupancy", 32, 16, 2048, 1e-3),
+            ("occupancy, 16 + 16, 2048", "occupancy", 16, 16, 2048, 0.0),
+            ("occupancy, 16 + 16, 2048, culled below 1e-4", "occupancy", 16, 16, 2048, 1e-4),
+            ("occupancy, 24 + 8, 2048", "occupancy", 24, 8, 2048, 0.0),
+            ("occupancy, 16 + 16, 1024", "occupancy", 16, 16, 1024, 0.0)]
 
 
 def main() -> int:
@@ -62,11 +65,12 @@ def main() -> int:
     pixels, bg = data.images.reshape(-1, 3), torch.ones(3)
     if args.sizes:
         return sizes(field, cfg, data, pixels, bg, grid, args.profile)
-    print("| configuration | ms/step | rays/s | rays/step |\n|---|---|---|---|")
-    for name, sampler, ns, ni, reg in SETTINGS:
+    print("| configuration | ms/step | rays/s | rays/step | samples with gradient |\n"
+          "|---|---|---|---|---|")
+    for name, sampler, ns, ni, reg, cull in SETTINGS:
         tc = dataclasses.replace(cfg.train, sampler=sampler, n_samples=ns, n_importance=ni,
-                                 reg_points=reg)
-        times, rays = [], 0.0
+                                 reg_points=reg, cull_weight=cull)
+        times, rays, grads, samples = [], 0.0, 0.0, 0.0
         for k in range(12):
             t = time.perf_counter()
             loss, logs = stage1_step(field, data, pixels, tc, bg,
@@ -77,9 +81,11 @@ def main() -> int:
             if k >= 2:
                 times.append(time.perf_counter() - t)
                 rays += logs["rays"]
+                grads += logs["grad_samples"]
+                samples += logs["samples"]
         dt = sum(times)
         print(f"| {name} | {dt / len(times) * 1000:.0f} | {rays / dt:.0f} | "
-              f"{rays / len(times):.0f} |", flush=True)
+              f"{rays / len(times):.0f} | {grads / max(samples, 1):.1%} |", flush=True)
     return 0
 
 

@@ -8,7 +8,7 @@ toy preset, ``--preset auto`` at 64 px, with the "occupancy" sampler and ``--ite
 plus ``--config`` on top, and prints JSON: per part (`scenes.parts.part_scores`) the test
 pixels, mean |error| and mean opacity of the full-ray render (stage 1's own sampler), the
 error ratios rod / sphere and plate / sphere (issue 13 asks for <= 1), and the training
-seconds.
+seconds; ``--picture PNG`` also writes the test views (ground truth above the render).
 """
 
 from __future__ import annotations
@@ -18,6 +18,8 @@ import shutil
 import sys
 from pathlib import Path
 
+import imageio.v3 as iio
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -39,6 +41,8 @@ def main() -> int:
     p.add_argument("--config", default=None, help="JSON overrides on top of the test's config")
     p.add_argument("--iters", type=int, default=1500)
     p.add_argument("--test-views", type=int, default=6, help="6: the test's data set")
+    p.add_argument("--picture", default=None, metavar="PNG",
+                   help="also write the test views, ground truth above the render (3x)")
     a = p.parse_args()
     out = Path(a.out)
     data = out / "data"
@@ -67,6 +71,11 @@ def main() -> int:
         return img["color"].reshape(H, W, 3).numpy(), img["opacity"].numpy()
 
     parts = part_scores(data, test.images.numpy(), test.alpha.numpy(), render)
+    if a.picture:
+        cols = [np.concatenate([test.images[i].numpy(), render(i)[0]], 0)
+                for i in range(len(test.images))]
+        pic = np.kron(np.concatenate(cols, 1), np.ones((3, 3, 1)))
+        iio.imwrite(a.picture, (pic.clip(0, 1) * 255).round().astype(np.uint8))
     emit_json({"preset": preset, "config": a.config, "iters": a.iters,
                "train_s": summary["seconds"], "parts": parts,
                "rod_over_sphere": parts["rod"]["error"] / parts["sphere"]["error"],

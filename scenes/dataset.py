@@ -51,7 +51,7 @@ def _check_options(name: str, res: int, views: int, test_views: int, spp: int,
             raise InputError(f"{flag} {value!r}: must be an integer >= {low}")
 
 
-def _ensure_variant() -> None:
+def ensure_variant() -> None:
     """Pick the default Mitsuba variant unless the caller has already chosen one."""
     import mitsuba as mi
 
@@ -63,7 +63,7 @@ def _ensure_variant() -> None:
 
 def build(name: str, seed: int) -> SceneSpec:
     """The content of scene ``name`` for ``seed`` (texture and density draw from it)."""
-    _ensure_variant()
+    ensure_variant()
     return SCENES[name](np.random.default_rng([seed, 1]))
 
 
@@ -77,7 +77,7 @@ def load_colour_scene(spec: SceneSpec, res: int, spp: int):
     """Mitsuba scene of the colour pass; the sensor pose is set per view by `_render`."""
     import mitsuba as mi
 
-    _ensure_variant()
+    ensure_variant()
     sensor = {"type": "perspective", "fov": math.degrees(CAMERA_ANGLE_X), "fov_axis": "x",
               "near_clip": 0.01, "far_clip": 100.0,
               "film": {"type": "hdrfilm", "width": res, "height": res, "pixel_format": "rgba",

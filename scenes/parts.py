@@ -17,7 +17,7 @@ import numpy as np
 
 from scenes.cameras import pixel_rays_gl
 from scenes.content import thin_parts
-from scenes.dataset import CAMERA_ANGLE_X
+from scenes.dataset import CAMERA_ANGLE_X, ensure_variant
 from scenes.opacity import first_hit
 
 PARTS = ("sphere", "rod", "plate")  # the object ids of `thin_parts`, in order
@@ -31,6 +31,8 @@ def part_scores(data: str | Path,  # the thin-parts data set (make_scene)
                 ) -> dict[str, dict[str, float]]:
     """{part: {"pixels", "error", "opacity"}} over all test views."""
     frames = json.loads((Path(data) / "transforms_test.json").read_text())["frames"]
+    ensure_variant()  # the scene description builds Mitsuba transforms (the data set may
+    # have been rendered by an earlier process)
     spec = thin_parts(np.random.default_rng(0))
     H, W = images.shape[1:3]
     err = {k: [] for k in range(len(PARTS))}

@@ -83,6 +83,10 @@ class TrainConfig:
     occ_k: float = 5.0  # "occupancy": occupied where |f| < half cell diagonal + occ_k * s
     occ_every: int = 32  # "occupancy": steps between grid rebuilds
     occ_warmup: int = 256  # "occupancy": steps with whole chords before the first grid build
+    occ_rescue: float = 0.0  # "occupancy": a pixel whose rays cross no occupied cell but whose
+    # target differs from the colour it would get (its background) by more than this in some
+    # channel is rendered on its whole box chord, so content the grid lost can come back
+    # (0 = off: such pixels get their background and no gradient)
     reg_points: int = 4096  # points per step for the Eikonal, normal and smoothness terms
     # (half of them ray samples, half uniform in the box)
     reg_rays: str = "uniform"  # how the ray half is drawn: "uniform" over the step's samples;
@@ -100,6 +104,9 @@ class TrainConfig:
     # per pixel and step, and its rays rendered on the same colour (Instant-NGP), so the field
     # cannot keep unseen matter coloured like the background; no effect on data without alpha
     # or on an unbounded field (its rays all end on the far solid)
+    cull_weight: float = 0.0  # samples whose compositing weight (from a pass without
+    # gradient) is below this get no gradient pass: they keep their values, detached (nerfacc's
+    # culling; the render is unchanged, `shells.render.volume.render_volume_rays`); 0 = off
     n_samples: int = 64  # uniform samples per ray inside the scene box
     n_importance: int = 64  # extra samples per ray drawn from the coarse weights (0 = off)
     lr: float = 1e-2  # Adam learning rate for hash-grid tables
@@ -362,7 +369,8 @@ _RULES = [_rule(k, *r) for k, r in [
     ("train.n_samples", _at_least(1)),
     *[(f"train.{k}", _at_least(0)) for k in ("n_importance", "eikonal_weight",
                                             "kernel_smooth_weight", "normal_weight",
-                                            "smooth_eps", "eval_max_views", "offband_weight")],
+                                            "smooth_eps", "eval_max_views", "offband_weight",
+                                            "cull_weight")],
     *[(f"{s}.color_loss", ((lambda v: v in COLOR_LOSSES), f"must be one of {COLOR_LOSSES}"))
       for s in ("train", "finetune")],
     ("train.reg_rays", ((lambda v: v in ("uniform", "level_set")),
@@ -371,7 +379,8 @@ _RULES = [_rule(k, *r) for k, r in [
     ("train.sampler", ((lambda v: v in ("box", "occupancy")), "must be 'box' or 'occupancy'")),
     *[(f"train.{k}", _at_least(1)) for k in ("occ_resolution", "occ_every", "reg_points",
                                             "coarse_to_fine_start")],
-    *[(f"train.{k}", _at_least(0)) for k in ("occ_k", "occ_warmup", "coarse_to_fine_iters",
+    *[(f"train.{k}", _at_least(0)) for k in ("occ_k", "occ_warmup", "occ_rescue",
+                                            "coarse_to_fine_iters",
                                             "normal_delay", "normal_ramp")],
     ("shell.resolution", _at_least(8)),
     *[(f"shell.{k}", _at_least(0)) for k in ("steps", "dilate_curvature", "erode_curvature",
@@ -435,24 +444,28 @@ def finest_resolution(extent: float, focal_px: float, distance: float) -> int:
 
 
 def object_config(extent: float, focal_px: float, distance: float,
-                  eikonal_weight: float = 0.005) -> Config:
+                  eikonal_weight: float = 0.005, cull_weight: float = 1e-4) -> Config:
     """Real objects on the CPU (NeRF-synthetic, photos; 2 cores), sized from the data.
 
     The toy preset with stage 1's empty-space skipping (``sampler`` "occupancy"; the toy's 32 +
     16 samples per ray, now on the occupied span: 16 + 16 was 1.1 dB worse on lego at equal
-    time), 2048 regulariser points; a hash grid whose finest level resolves half a pixel at
-    the cameras' distance (`finest_resolution`: 256 for lego at 1/8, 512 at 1/4), one level per
-    doubling above the toy preset's 8 levels and a table twice as large per doubling from
-    2^18; 3000 steps per doubling. The Eikonal weight is 0.005, not the toy's 0.1: on lego at
-    1/4 the strong term held the hash grid back (1500 steps: 23.18 dB at 0.1, 25.6 at 0.02,
-    26.2 at 0.005), and the shells of the looser SDF still bound it (band >= full ray);
-    unbounded captures pass 0.1 (`shells.training.preset_config`). Training pixels of RGBA
-    data go on random backgrounds (``random_background``; no effect without alpha): on white
-    alone, lego's field kept an unseen white solid under its base plate that the shells had to
-    enclose (1/8: band 4.65 samples/px; on random backgrounds 2.05, and 0.2 dB higher). Shells
-    on a 256^3 grid, eroded 4 s instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at
-    1.5 s cut 1 dB off the band render). Above the 1/8 sizes stage 2 runs longer (500 + 1000
-    steps per doubling, 4096 rays each). BENCHMARKS.md, "Issue 13".
+    time, and 2.1 dB worse at batch 2048), 2048 regulariser points; a hash grid whose finest
+    level resolves half a pixel at the cameras' distance (`finest_resolution`: 256 for lego at
+    1/8, 512 at 1/4), one level per doubling above the toy preset's 8 levels and a table twice
+    as large per doubling from 2^18; 3000 steps per doubling. The Eikonal weight is 0.005, not
+    the toy's 0.1: on lego at 1/4 the strong term held the hash grid back (1500 steps: 23.18 dB
+    at 0.1, 25.6 at 0.02, 26.2 at 0.005), and the shells of the looser SDF still bound it (band
+    >= full ray); unbounded captures pass 0.1 (`shells.training.preset_config`). Training pixels
+    of RGBA data go on random backgrounds (``random_background``; no effect without alpha): on
+    white alone, lego's field kept an unseen white solid under its base plate that the shells
+    had to enclose (1/8: band 4.65 samples/px; on random backgrounds 2.05, and 0.2 dB higher).
+    Samples under 1e-4 of compositing weight get no gradient pass (``cull_weight``), and pixels
+    with content whose rays cross no occupied cell are sampled on their whole chord
+    (``occ_rescue``): lego 1/8 in 572 s instead of 665, at 31.06 dB instead of 30.98 (unbounded
+    captures pass cull_weight 0: not measured on them). Shells on a 256^3 grid, eroded 4 s
+    instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at 1.5 s cut 1 dB off the band
+    render). Stage 2 runs 1500 steps of 4096 rays (1000 more per doubling above 512).
+    BENCHMARKS.md, "Issue 13".
     """
     cfg = toy_config()
     res = finest_resolution(extent, focal_px, distance)
@@ -461,13 +474,14 @@ def object_config(extent: float, focal_px: float, distance: float,
                                     log2_hashmap_size=min(21, 18 + doublings))
     cfg.train = dataclasses.replace(cfg.train, sampler="occupancy", iters=3000 * (1 + doublings),
                                     reg_points=2048, eikonal_weight=eikonal_weight,
-                                    random_background=True, checkpoint_every=500, log_every=50)
+                                    random_background=True, cull_weight=cull_weight,
+                                    occ_rescue=0.05, checkpoint_every=500, log_every=50)
     cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
-    if doublings:  # a longer stage 2 for larger images: 1500 steps of 4096 rays instead of the
-        # toy's 500 of 1024 (lego 1/4 after 40 min of stage 1: band 30.69 dB against 29.99,
-        # for 100 s of stage 2 instead of 21 s)
-        cfg.finetune = dataclasses.replace(cfg.finetune, iters=500 + 1000 * doublings,
-                                           batch_rays=4096)
+    # a longer stage 2 than the toy's 500 steps of 1024 rays: 1500 of 4096, and 1000 more per
+    # doubling above 512 (lego 1/4 after 40 min of stage 1: band 30.69 dB against 29.99, for
+    # 100 s of stage 2 instead of 21 s; lego 1/8: 31.86 against 31.03, 92 s instead of 20)
+    cfg.finetune = dataclasses.replace(cfg.finetune, iters=500 + 1000 * max(1, doublings),
+                                       batch_rays=4096)
     cfg.check("object preset")
     return cfg
 

@@ -38,7 +38,7 @@ from shells.fields.network import ShellField
 from shells.fields.neus import may_have_density
 from shells.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
 from shells.metrics import psnr
-from shells.render.volume import SpanGrid, render_volume_image, render_volume_rays
+from shells.render.volume import SpanGrid, ray_aabb, render_volume_image, render_volume_rays
 from shells.run import RunDir, read_checkpoint, read_run, write_run
 
 MAX_DRAWS = 8  # "occupancy" sampler: at most this many rounds of pixels drawn per shard
@@ -100,8 +100,10 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
         # the default Eikonal weight, not the bounded preset's 0.005: on fox the weak term
         # gained 0.3 dB full ray but cost the band after stage 2 3.6 dB (16.4 against 20.0;
         # BENCHMARKS.md, tenth session)
-        return object_config(4.0 * sim.radius, float(cams.fx.double().median()), distance,
-                             eikonal_weight=TrainConfig.eikonal_weight), "object"
+        # and no culling (cull_weight): measured on lego only
+        cfg = object_config(4.0 * sim.radius, float(cams.fx.double().median()), distance,
+                            eikonal_weight=TrainConfig.eikonal_weight, cull_weight=0.0)
+        return cfg, "object"
     box = frames.aabb.double()
     centre = 0.5 * (box[0] + box[1])
     distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
@@ -273,8 +275,19 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
     else:
         pixel_bg, target = random_backgrounds(idx, pixels, alpha, background, gen)
     ray_bg = pixel_bg.repeat_interleave(spp, dim=0)  # [P * spp, 3], a pixel's rays contiguous
+    rescued = 0
+    if grid is not None and tc.occ_rescue > 0:  # lost content: the whole chord
+        lost = ~crosses & ((target - pixel_bg).abs().amax(-1) > tc.occ_rescue)
+        if lost.any():
+            r = lost.repeat_interleave(spp)
+            n0, f0, h0 = ray_aabb(o[r], d[r], field.aabb)
+            near, far, hit = near.clone(), far.clone(), hit.clone()
+            near[r], far[r], hit[r] = n0, f0, h0
+            crosses = crosses | lost
+            rescued = int(lost.sum())
     if grid is None:
-        out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, ray_bg, gen)
+        out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, ray_bg, gen,
+                                 cull=tc.cull_weight)
         pred = out["color"].reshape(len(idx), spp, 3).mean(1)  # box filter
         rendered = len(o)
     else:
@@ -285,13 +298,15 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
         if rendered:
             out = render_volume_rays(field, o[m], d[m], tc.n_samples, tc.n_importance,
                                      ray_bg[m], gen,
-                                     span=(near[m], far[m], hit[m]))
+                                     span=(near[m], far[m], hit[m]), cull=tc.cull_weight)
             pred[crosses] = out["color"].reshape(-1, spp, 3).mean(1)  # box filter
     color = color_loss(pred, target, tc.color_loss)
     zero = color.new_zeros(())
     if out is None:
         points, off, share, near_ls = o.new_zeros(0, 3), zero, zero, None
+        grad_samples = 0
     else:
+        grad_samples = int(out["grad"].sum())
         points = out["points"]
         off, share, near_ls = off_band(field, out, tc)
     level_set = tc.reg_rays == "level_set" and out is not None
@@ -311,7 +326,8 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
                   "smooth": reg["smooth"].item(), "w_normal": w_normal, "psnr": psnr_of(mse),
                   "off_band": float(share),
                   "rays": float(len(idx) * spp),
-                  "samples": float(rendered * (tc.n_samples + tc.n_importance))}
+                  "samples": float(rendered * (tc.n_samples + tc.n_importance)),
+                  "grad_samples": float(grad_samples), "rescued": float(rescued)}
 
 
 def active_levels(step: int, tc: TrainConfig, n_levels: int) -> int | None:

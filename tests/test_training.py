@@ -90,6 +90,36 @@ def test_occupancy_steps_draw_until_the_batch_crosses_the_grid(tiny_blender):
     assert field.rad_mlp[0].weight.grad.abs().sum() > 0  # (hash weights start at zero)
 
 
+def test_occupancy_rescue_renders_lost_content_on_the_whole_chord(tiny_blender):
+    """``occ_rescue``: a drawn pixel that crosses no occupied cell but whose target is not its
+    background is rendered on its whole box chord (content the grid lost); the others that
+    cross nothing still cost no samples."""
+    from shells.datasets import load_dataset
+    from shells.render.volume import SpanGrid
+    from shells.training import build_field, draw_pixels, stage1_step
+
+    cfg = _tiny_config("occupancy")
+    data = load_dataset(tiny_blender, "train")
+    field = build_field(cfg, data.aabb, torch.device("cpu"))
+    grid = SpanGrid(field.aabb, 16, cfg.train.occ_k)
+    grid.update(field)
+    grid.occ[:, :, grid.N // 2:] = False  # the grid lost the upper half of the sphere
+    pixels = data.images.reshape(-1, 3)
+    idx, _, _, _, _, _, crosses = draw_pixels(data, grid, 64, 1, torch.Generator().manual_seed(0))
+    lost = ~crosses & ((pixels[idx] - 1.0).abs().amax(-1) > 0.05)
+    assert int(lost.sum()) > 0 and int((~crosses & ~lost).sum()) > 0
+    per_ray = cfg.train.n_samples + cfg.train.n_importance
+    cfg.train.occ_rescue = 0.05
+    _, logs = stage1_step(field, data, pixels, cfg.train, torch.ones(3),
+                          torch.Generator().manual_seed(0), grid)
+    assert logs["rescued"] == int(lost.sum()) and logs["rays"] == len(idx)
+    assert logs["samples"] == (64 + int(lost.sum())) * per_ray
+    cfg.train.occ_rescue = 0.0
+    _, logs = stage1_step(field, data, pixels, cfg.train, torch.ones(3),
+                          torch.Generator().manual_seed(0), grid)
+    assert logs["rescued"] == 0 and logs["samples"] == 64 * per_ray
+
+
 def test_normal_term_delayed_and_ramped_in(tiny_blender):
     """normal_delay / normal_ramp: the normal term's weight is 0, then rises linearly; the
     step's loss holds exactly that share of it (same draw at every step number)."""
@@ -162,19 +192,24 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     assert preset_config("auto", big, 2, cpu)[1] == "toy"  # 64 px a side
     half = preset_config("object", big, 2, cpu)[0]
     assert half.field.max_resolution == 256
-    # one doubling above 256: a longer stage 2 (500 + 1000 steps of 4096 rays); none at 256
+    # stage 2: 1500 steps of 4096 rays at 256 and at 512 (one doubling), 1000 more per doubling
     assert (cfg.finetune.iters, cfg.finetune.batch_rays) == (1500, 4096)
-    assert (half.finetune.iters, half.finetune.batch_rays) == (500, 1024)
+    assert (half.finetune.iters, half.finetune.batch_rays) == (1500, 4096)
+    assert preset_config("toy", big, 1, cpu)[0].finetune.iters == 500
     # the weak Eikonal term is for bounded objects; an unbounded capture keeps the toy's 0.1
     from shells.contraction import Similarity
     assert cfg.train.eikonal_weight == 0.005
     sim = Similarity(centre=(0.0, 0.0, 0.0), radius=1.0)
     assert preset_config("object", big, 1, cpu, sim=sim)[0].train.eikonal_weight == 0.1
+    assert preset_config("object", big, 1, cpu, sim=sim)[0].train.cull_weight == 0.0
     assert preset_config("paper", big, 1, cpu)[1] == "paper"
     # RGBA objects train on random backgrounds; the toy and paper presets on the data's colour
     assert cfg.train.random_background and half.train.random_background
     assert not preset_config("toy", big, 1, cpu)[0].train.random_background
     assert not preset_config("paper", big, 1, cpu)[0].train.random_background
+    assert cfg.train.cull_weight == 1e-4 and cfg.train.occ_rescue == 0.05  # the object preset's
+    toy_train = preset_config("toy", big, 1, cpu)[0].train
+    assert toy_train.cull_weight == 0.0 and toy_train.occ_rescue == 0.0
 
 
 def test_train_cli_errors(tiny_blender, tmp_path, capsys):

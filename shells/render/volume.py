@@ -14,10 +14,17 @@ every renderer (`shells.fields.neus.may_have_density`), gives each ray the span 
 first and the last occupied cell it crosses (widened by a cell diagonal on both sides). The
 same hierarchical sampling then runs on that span instead of the whole box chord, and a ray
 that crosses no occupied cell is not sampled at all: its colour is the background.
+
+Culling (``cull``, `TrainConfig.cull_weight`): in training, the samples whose compositing weight
+is negligible (empty space in front of the surface, occluded space behind it) are evaluated
+without gradient only. On the CPU that saves less than it seems: the hash-grid gather
+dominates a sample's cost, and a forward without gradient costs about 2/3 of a forward and
+backward (lego 1/8 field, 2 threads: 1.5 against 2.4 us per sample).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -163,14 +170,23 @@ def render_volume_rays(field: torch.nn.Module,
                 background: torch.Tensor,  # [3] or [R, 3]
                 generator: torch.Generator | None = None,
                 span: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                cull: float = 0.0,
                 ) -> dict[str, torch.Tensor]:
     """Render rays through the field's scene box (`field.aabb`), or through ``span`` = (near,
     far, hit) [R] each when given (`SpanGrid.spans`). An unbounded field (`field.similarity`)
     is sampled in the ray parameter s of `shells.render.warp` from the camera to the far
     background instead: the same stratified and importance sampling, evenly in s.
 
+    ``cull`` > 0 with gradient enabled (training): the samples are placed and evaluated once
+    without gradient, and only those whose compositing weight reaches ``cull`` are evaluated
+    again with gradient (nerfacc's culling of transparent and occluded samples). The others
+    keep their values, detached, so the forward is the same render (to float rounding) and
+    only their own gradient is dropped: d color / d rgb_i = w_i < cull, and for a sample with
+    weight w_i < cull in front of the surface, d alpha_i / d sdf_i ~ alpha_i / s.
+
     Returns color [R, 3], opacity [R], depth [R] (expected t), weights [R, S], points [R, S, 3],
-    s [R, S] and hit [R]. Rays that miss the box (or their span) get the background.
+    s [R, S], hit [R] and grad [R, S] (the samples evaluated with gradient). Rays that miss the
+    box (or their span) get the background.
     """
     sim = getattr(field, "similarity", None)
     if sim is not None and span is None:  # u = s: even in contracted space
@@ -186,31 +202,44 @@ def render_volume_rays(field: torch.nn.Module,
             return u
     u = stratified_samples(near, far, n_samples, generator)
     R = u.shape[0]
-    out = _field_at(field, origins, dirs, to_t(u))
-    if n_importance > 0:
-        # the coarse samples are evaluated once, with gradient; their weights (detached) place
-        # the fine samples, which are evaluated and merged in distance order
-        with torch.no_grad():
-            delta = torch.diff(to_t(section_edges(u, near, far)), dim=-1)
-            cos = (out["normal"] * dirs[:, None]).sum(-1)
-            alpha = neus_alpha(out["sdf"], out["s"], cos, delta)
-            _, w, _ = composite(alpha, torch.zeros(*u.shape, 3, device=u.device), background)
-            u_fine = sample_pdf(u, w, near, far, n_importance, generator)
-        fine = _field_at(field, origins, dirs, to_t(u_fine))
-        u, order = torch.sort(torch.cat([u, u_fine], dim=-1), dim=-1)
-        out = {k: _merge(out[k], fine[k], order) for k in out}
+    culled = cull > 0 and torch.is_grad_enabled()
+    with torch.no_grad() if culled else contextlib.nullcontext():
+        out = _field_at(field, origins, dirs, to_t(u))
+        if n_importance > 0:
+            # the coarse samples are evaluated once (with gradient unless culled); their
+            # weights (detached) place the fine samples, which are evaluated and merged in
+            # distance order
+            with torch.no_grad():
+                delta = torch.diff(to_t(section_edges(u, near, far)), dim=-1)
+                cos = (out["normal"] * dirs[:, None]).sum(-1)
+                alpha = neus_alpha(out["sdf"], out["s"], cos, delta)
+                _, w, _ = composite(alpha, torch.zeros(*u.shape, 3, device=u.device),
+                                    background)
+                u_fine = sample_pdf(u, w, near, far, n_importance, generator)
+            fine = _field_at(field, origins, dirs, to_t(u_fine))
+            u, order = torch.sort(torch.cat([u, u_fine], dim=-1), dim=-1)
+            out = {k: _merge(out[k], fine[k], order) for k in out}
     t = to_t(u)
     delta = torch.diff(to_t(section_edges(u, near, far)), dim=-1)  # [R, S]
     S = t.shape[1]
     d = dirs[:, None].expand(R, S, 3)
     pts = origins[:, None] + t[..., None] * dirs[:, None]  # [R, S, 3]
+    if culled:  # the gradient pass on the samples that carry weight
+        with torch.no_grad():
+            cos = (out["normal"] * d).sum(-1)
+            alpha = neus_alpha(out["sdf"], out["s"], cos, delta) * hit[:, None]
+            keep = composite(alpha, out["rgb"], background)[1] >= cull  # [R, S]
+        live = field(pts[keep], d[keep])
+        out = {k: v.index_put((keep,), live[k]) for k, v in out.items()}
+    else:
+        keep = torch.ones_like(u, dtype=torch.bool)
     sdf, s, normal, rgb = out["sdf"], out["s"], out["normal"], out["rgb"]
     cos = (normal * d).sum(-1)
     alpha = neus_alpha(sdf, s, cos, delta) * hit[:, None]
     color, weights, opacity = composite(alpha, rgb, background)
     depth = (weights * t).sum(-1)
     return {"color": color, "opacity": opacity, "depth": depth, "weights": weights,
-            "points": pts, "t": t, "s": s, "sdf": sdf, "hit": hit}
+            "points": pts, "t": t, "s": s, "sdf": sdf, "hit": hit, "grad": keep}
 
 
 def _field_at(field: torch.nn.Module, origins: torch.Tensor, dirs: torch.Tensor,
