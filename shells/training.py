@@ -14,7 +14,10 @@ rebuilt every ``occ_every`` steps after ``occ_warmup``, stored in the checkpoint
 ray only over the span of occupied cells it crosses and skips the rays that cross none. Those
 rays cost nothing and still enter the loss (as background), and a step draws pixels until
 ``batch_rays`` of them cross an occupied cell, so the number of field samples per step stays
-fixed while the number of rays grows as the grid empties. Coarse-to-fine (Neuralangelo,
+fixed while the number of rays grows as the grid empties. With ``occ_rescue``, a skipped pixel
+whose target is not its background is sampled over its whole chord instead (content the grid
+lost); with ``cull_weight``, samples of negligible weight get no gradient pass
+(`shells.render.volume.render_volume_rays`). Coarse-to-fine (Neuralangelo,
 ``coarse_to_fine_iters``): the hash levels are switched on one by one.
 
 The steps run in `shells.loop.optimise` (schedule, progress, logs, checkpoints, exact resume);
