@@ -16,7 +16,10 @@ the test views (full-ray, the run's own sampler), off the clock. The wall time o
 the sum of the pieces' training seconds. Writes OUT/curve.json (every point, rays/s and
 samples/s of each run), OUT/curve.png (matplotlib) and prints a Markdown table. ``--iters-old``
 and ``--iters-new`` set the runs' lengths (default: the presets' own); ``--only`` trains one;
-``--config-new FILE`` applies a config file on top of the new run's preset.
+``--config-new FILE`` applies a config file on top of the new run's preset; ``--variant
+FILE:LABEL`` (repeatable) adds a run LABEL, the new preset with FILE on top, trained after the
+others in the same invocation, so that its rays/s compare with the old run's on the same
+machine state.
 ``--replot A/curve.json[:LABEL] B/curve.json[:LABEL] ...`` trains nothing and draws the runs of
 earlier invocations in one plot and table (a run named again gets " (LABEL)" appended).
 """
@@ -129,8 +132,16 @@ def main() -> int:
     p.add_argument("--only", choices=["old", "new"], default=None, help="train one of them")
     p.add_argument("--config-new", default=None, metavar="JSON",
                    help="a config file applied on top of the new run's preset (a probe)")
+    p.add_argument("--variant", action="append", default=[], metavar="JSON:LABEL",
+                   help="one more run: the new preset with this config file on top")
     p.add_argument("--replot", nargs="+", default=None, metavar="CURVE_JSON[:LABEL]")
     args = p.parse_args()
+    variants = []
+    for spec in args.variant:
+        path, _, label = spec.rpartition(":")
+        if not path or not label or label in ("old", "new"):
+            p.error(f"--variant {spec}: give FILE:LABEL with a label other than old/new")
+        variants.append((label, read_config_file(path)))
     device = torch.device("cpu")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -146,19 +157,27 @@ def main() -> int:
             cfg.update({"train": {"iters": iters}}, "bench")
     if args.config_new:
         new.update(read_config_file(args.config_new), args.config_new)
+    runs = [("old", old), ("new", new)]
+    for label, extra in variants:
+        cfg, _ = preset_config("auto", args.data, args.downscale, device)
+        cfg.update(extra, label)
+        runs.append((label, cfg))
     res = {}
-    for name, cfg in (("old", old), ("new", new)):
-        if args.only in (None, name):
+    for name, cfg in runs:
+        if args.only in (None, name) or name not in ("old", "new"):
             res[name] = curve(name, cfg, args, test, device)
     meta = {"data": args.data, "downscale": args.downscale, "new_preset": preset,
-            "config_new": args.config_new,
+            "config_new": args.config_new, "variants": args.variant,
             "torch_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d")}
     (out / "curve.json").write_text(json.dumps({"meta": meta, "runs": res}, indent=2) + "\n")
     plot(res, out / "curve.png", f"{Path(args.data).name} 1/{args.downscale}, stage 1, "
                                  f"{torch.get_num_threads()} torch threads")
     table(res)
-    if len(res) == 2:
-        print(f"\nrays/s new / old: {res['new']['rays_per_s'] / res['old']['rays_per_s']:.2f}x")
+    if "old" in res:
+        for name in res:
+            if name != "old":
+                print(f"rays/s {name} / old: "
+                      f"{res[name]['rays_per_s'] / res['old']['rays_per_s']:.2f}x")
     print(f"curve: {out / 'curve.png'}, {out / 'curve.json'}")
     return 0
 
