@@ -89,8 +89,8 @@ def _f32(v: float) -> float:
 class HashGrid(nn.Module):
     """Fast vectorised torch hash-grid encoding; `params` is Dr.Jit's flat parameter vector.
 
-    All levels and all 8 corners are looked up with one `embedding_bag` (a fused gather +
-    weighted sum whose backward is a scatter-add), the index math done once in int64.
+    All levels and all 8 corners are looked up with one gather (`_Lookup`: an `index_select`
+    and a weighted sum, whose backward is one `index_add_`), the index math done once in int64.
     Gradients flow to `params` and to the input points (through the trilinear weights).
     """
 
