@@ -1,6 +1,7 @@
 """Stage-1 training curves: test PSNR against training wall time, old against new, one run.
 
-    python bench/stage1_curve.py --data ../shared/data/lego --downscale 8 --out OUT
+    python bench/stage1_curve.py --data ../shared/data/lego --downscale 8 --out OUT \
+        --iters-old 3000 [--old-commit 9e6bc1f]
 
 Trains the same data twice, one after the other (never two trainings at once: on 2 cores they
 slow each other ~10x):
@@ -20,6 +21,11 @@ and ``--iters-new`` set the runs' lengths (default: the presets' own); ``--only`
 FILE:LABEL`` (repeatable) adds a run LABEL, the new preset with FILE on top, trained after the
 others in the same invocation, so that its rays/s compare with the old run's on the same
 machine state.
+``--old-commit REV`` trains the old run with the code of REV instead (its tree from `git
+archive`, run by `bench/stage1_curve_old.py` in a child process): the stage 1 of the day an
+issue was filed, code and config, where the default old run is the old config on today's
+code (every per-sample speed-up since included). The toy preset on today's code is then the
+run "old config", trained as well.
 ``--replot A/curve.json[:LABEL] B/curve.json[:LABEL] ...`` trains nothing and draws the runs of
 earlier invocations in one plot and table (a run named again gets " (LABEL)" appended).
 """
@@ -28,7 +34,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -74,6 +82,40 @@ def curve(name: str, cfg, args, test, device: torch.device) -> dict:
             "config": cfg.to_dict()}
 
 
+def old_code_curve(rev: str, args) -> dict:
+    """The old run trained by the code of commit ``rev`` (`bench/stage1_curve_old.py`)."""
+    repo = Path(__file__).resolve().parents[1]
+    tree = Path(args.out) / "old_code"
+    shutil.rmtree(tree, ignore_errors=True)
+    tree.mkdir(parents=True)
+    sha = subprocess.run(["git", "-C", str(repo), "rev-parse", "--verify", f"{rev}^{{commit}}"],
+                         capture_output=True, text=True)
+    if sha.returncode:
+        raise SystemExit(f"--old-commit {rev}: not a commit of {repo}")
+    archive = subprocess.Popen(["git", "-C", str(repo), "archive", sha.stdout.strip()],
+                               stdout=subprocess.PIPE)
+    subprocess.run(["tar", "-x", "-C", str(tree)], stdin=archive.stdout, check=True)
+    if archive.wait():
+        raise SystemExit(f"--old-commit {rev}: git archive failed")
+    cmd = [sys.executable, str(repo / "bench" / "stage1_curve_old.py"), "--data", args.data,
+           "--downscale", str(args.downscale), "--out", str(Path(args.out) / "old"),
+           "--segments", str(args.segments)]
+    if args.iters_old is not None:
+        cmd += ["--iters", str(args.iters_old)]
+    env = {**os.environ, "PYTHONPATH": str(tree.resolve())}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, text=True)
+    result = None
+    for line in proc.stdout:
+        if line.startswith("RESULT "):
+            result = json.loads(line[len("RESULT "):])
+        else:
+            print(line, end="", flush=True)
+    if proc.wait() or result is None:
+        raise SystemExit(f"--old-commit {rev}: the old run failed (exit {proc.returncode})")
+    result["code"] = f"commit {sha.stdout.strip()[:12]}"
+    return result
+
+
 def plot(res: dict, path: Path, title: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
@@ -83,8 +125,9 @@ def plot(res: dict, path: Path, title: str) -> None:
     for name, r in res.items():
         xs = [0.0] + [p["seconds"] / 60 for p in r["points"]]
         ys = [None] + [p["psnr"] for p in r["points"]]
+        code = f" ({r['code']})" if "code" in r else ""  # an --old-commit run
         ax.plot(xs[1:], ys[1:], marker="o",
-                label=f"{name}: {r['rays_per_s']:.0f} rays/s, {r['samples_per_s'] / 1e3:.0f}k "
+                label=f"{name}{code}: {r['rays_per_s']:.0f} rays/s, {r['samples_per_s'] / 1e3:.0f}k "
                       f"samples/s")
     ax.set_xlabel("stage-1 training time (min)")
     ax.set_ylabel("test PSNR (dB)")
@@ -134,13 +177,17 @@ def main() -> int:
                    help="a config file applied on top of the new run's preset (a probe)")
     p.add_argument("--variant", action="append", default=[], metavar="JSON:LABEL",
                    help="one more run: the new preset with this config file on top")
+    p.add_argument("--old-commit", default=None, metavar="REV",
+                   help="train the old run with the code of this commit (e.g. 9e6bc1f, before "
+                        "issue 13); the old config on today's code becomes \"old config\"")
     p.add_argument("--replot", nargs="+", default=None, metavar="CURVE_JSON[:LABEL]")
     args = p.parse_args()
     variants = []
     for spec in args.variant:
         path, _, label = spec.rpartition(":")
-        if not path or not label or label in ("old", "new"):
-            p.error(f"--variant {spec}: give FILE:LABEL with a label other than old/new")
+        if not path or not label or label in ("old", "new", "old config"):
+            p.error(f"--variant {spec}: give FILE:LABEL with a label other than old, new and "
+                    f"old config")
         variants.append((label, read_config_file(path)))
     device = torch.device("cpu")
     out = Path(args.out)
@@ -157,16 +204,20 @@ def main() -> int:
             cfg.update({"train": {"iters": iters}}, "bench")
     if args.config_new:
         new.update(read_config_file(args.config_new), args.config_new)
-    runs = [("old", old), ("new", new)]
+    # (name, config, the --only value that trains it: None for the variants, which always do)
+    runs = [("old config" if args.old_commit else "old", old, "old"), ("new", new, "new")]
     for label, extra in variants:
         cfg, _ = preset_config("auto", args.data, args.downscale, device)
         cfg.update(extra, label)
-        runs.append((label, cfg))
+        runs.append((label, cfg, None))
     res = {}
-    for name, cfg in runs:
-        if args.only in (None, name) or name not in ("old", "new"):
-            res[name] = curve(name, cfg, args, test, device)
+    if args.old_commit and args.only in (None, "old"):
+        res["old"] = old_code_curve(args.old_commit, args)
+    for name, cfg, only in runs:
+        if args.only is None or only in (None, args.only):
+            res[name] = curve(name.replace(" ", "_"), cfg, args, test, device)
     meta = {"data": args.data, "downscale": args.downscale, "new_preset": preset,
+            "old_commit": args.old_commit,
             "config_new": args.config_new, "variants": args.variant,
             "torch_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d")}
     (out / "curve.json").write_text(json.dumps({"meta": meta, "runs": res}, indent=2) + "\n")
@@ -176,8 +227,9 @@ def main() -> int:
     if "old" in res:
         for name in res:
             if name != "old":
-                print(f"rays/s {name} / old: "
-                      f"{res[name]['rays_per_s'] / res['old']['rays_per_s']:.2f}x")
+                print(f"{name} / old: rays/s "
+                      f"{res[name]['rays_per_s'] / res['old']['rays_per_s']:.2f}x, samples/s "
+                      f"{res[name]['samples_per_s'] / res['old']['samples_per_s']:.2f}x")
     print(f"curve: {out / 'curve.png'}, {out / 'curve.json'}")
     return 0
 
