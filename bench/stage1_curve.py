@@ -127,8 +127,8 @@ def plot(res: dict, path: Path, title: str) -> None:
         ys = [None] + [p["psnr"] for p in r["points"]]
         code = f" ({r['code']})" if "code" in r else ""  # an --old-commit run
         ax.plot(xs[1:], ys[1:], marker="o",
-                label=f"{name}{code}: {r['rays_per_s']:.0f} rays/s, {r['samples_per_s'] / 1e3:.0f}k "
-                      f"samples/s")
+                label=f"{name}{code}: {r['rays_per_s']:.0f} rays/s, "
+                      f"{r['samples_per_s'] / 1e3:.0f}k samples/s")
     ax.set_xlabel("stage-1 training time (min)")
     ax.set_ylabel("test PSNR (dB)")
     ax.set_title(title, fontsize=8)
