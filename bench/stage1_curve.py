@@ -172,7 +172,8 @@ def main() -> int:
     p.add_argument("--segments", type=int, default=6, help="test-PSNR points per curve")
     p.add_argument("--iters-old", type=int, default=None)
     p.add_argument("--iters-new", type=int, default=None)
-    p.add_argument("--only", choices=["old", "new"], default=None, help="train one of them (runs given by --variant always train)")
+    p.add_argument("--only", choices=["old", "new"], default=None,
+                   help="train one of them (runs given by --variant always train)")
     p.add_argument("--config-new", default=None, metavar="JSON",
                    help="a config file applied on top of the new run's preset (a probe)")
     p.add_argument("--variant", action="append", default=[], metavar="JSON:LABEL",
