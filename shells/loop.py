@@ -176,11 +176,15 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
             raise InputError(f"{checkpoint}: already trained {start} steps; pass a larger "
                              f"--iters to continue")
         load_field_state(field, resume["field"], str(checkpoint))
+        fresh_kernels = [{"fused": g["fused"], "foreach": g["foreach"]} for g in opt.param_groups]
         try:
             opt.load_state_dict(resume["optimizer"])
         except (ValueError, KeyError) as exc:
             raise InputError(f"{checkpoint}: the optimiser state does not fit the field ({exc});"
                              " the checkpoint is of another architecture: re-train") from None
+        # the kernel make_optimizer chose, not the saved one (runs saved before fused Adam)
+        for g, kernel in zip(opt.param_groups, fresh_kernels):
+            g.update(kernel)
         if state is not None and resume.get("extra") is not None:
             state.load_state_dict(resume["extra"])
     if w.main:  # records past the checkpoint (or of an attempt stopped before the first one)
