@@ -39,6 +39,8 @@ def main() -> int:
     p.add_argument("--samples", type=int, default=64)
     p.add_argument("--importance", type=int, default=32)
     p.add_argument("--chunk", type=int, default=8192)
+    p.add_argument("--slope", default="normal", choices=["normal", "ray"],
+                   help="the opacity's slope (`train.slope`; default: what skipping renderers use)")
     a = p.parse_args()
     run = RunDir(a.run)
     meta = read_run(run)
@@ -59,7 +61,7 @@ def main() -> int:
             o, d = data.cameras.pixel_rays(v, 1)
             for i in range(0, len(o), a.chunk):
                 out = render_volume_rays(field, o[i:i + a.chunk], d[i:i + a.chunk],
-                                         a.samples, a.importance, bg)
+                                         a.samples, a.importance, bg, slope=a.slope)
                 w, f, s = out["weights"], out["sdf"], out["s"]
                 near = may_have_density(f, s, h, k)
                 classes = (near, ~near & (f < 0), ~near & (f > 0))

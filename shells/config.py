@@ -96,6 +96,12 @@ class TrainConfig:
     offband_weight: float = 0.0  # weight of the off-band term: the compositing weight that lies
     # inside a solid, off its level set (f < -(h + occ_k s), h the half diagonal of an
     # occ_resolution cell), which every skipping renderer (shells, occupancy grid) drops
+    free_weight: float = 0.0  # weight of the free-space term: mean relu(-f) over the ray
+    # samples a ray reaches with transmittance above free_transmittance, i.e. space the render
+    # itself says is empty; an SDF is positive there, but NeuS lets the field keep a
+    # transparent solid (f < 0, rising along the ray) that the shells would close
+    # (`shells.training.free_space`); 0 = off
+    free_transmittance: float = 0.99  # "free": the ray's transmittance before the sample
     coarse_to_fine_iters: int = 0  # Neuralangelo: the hash levels are switched on one by one
     # over this many steps (0 = all levels from the start)
     coarse_to_fine_start: int = 4  # levels active at step 0 when coarse_to_fine_iters > 0
@@ -107,6 +113,11 @@ class TrainConfig:
     cull_weight: float = 0.0  # samples whose compositing weight (from a pass without
     # gradient) is below this get no gradient pass: they keep their values, detached (nerfacc's
     # culling; the render is unchanged, `shells.render.volume.render_volume_rays`); 0 = off
+    slope: str = "normal"  # where stage 1's NeuS opacity takes the SDF's slope along a ray:
+    # "normal" = d . n, the predicted normal (paper Eq. 8); "ray" = df/dt from the ray's own
+    # samples (central differences), so density sits where f falls through zero along the
+    # ray and the predicted normal is trained by the normal term only
+    # (`shells.render.volume.render_volume_rays`); stage 2 and the band renderer use "normal"
     n_samples: int = 64  # uniform samples per ray inside the scene box
     n_importance: int = 64  # extra samples per ray drawn from the coarse weights (0 = off)
     lr: float = 1e-2  # Adam learning rate for hash-grid tables
@@ -370,9 +381,11 @@ _RULES = [_rule(k, *r) for k, r in [
     *[(f"train.{k}", _at_least(0)) for k in ("n_importance", "eikonal_weight",
                                             "kernel_smooth_weight", "normal_weight",
                                             "smooth_eps", "eval_max_views", "offband_weight",
-                                            "cull_weight")],
+                                            "cull_weight", "free_weight")],
+    ("train.free_transmittance", ((lambda v: 0 < v < 1), "must be in (0, 1)")),
     *[(f"{s}.color_loss", ((lambda v: v in COLOR_LOSSES), f"must be one of {COLOR_LOSSES}"))
       for s in ("train", "finetune")],
+    ("train.slope", ((lambda v: v in ("normal", "ray")), "must be 'normal' or 'ray'")),
     ("train.reg_rays", ((lambda v: v in ("uniform", "level_set")),
                         "must be 'uniform' or 'level_set'")),
     ("train.fd_eps", _positive()),

@@ -212,6 +212,21 @@ def off_band(field: ShellField, out: dict[str, torch.Tensor], tc: TrainConfig,
     return term, share, near
 
 
+def free_space(out: dict[str, torch.Tensor], tc: TrainConfig,
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The free-space term of the rays in ``out`` (`render_volume_rays`): the mean of relu(-f)
+    over the samples reached with transmittance T_i = 1 - sum_{j<i} w_j (detached) above
+    ``free_transmittance``, with gradient through f; and the share of those samples at f < 0
+    (detached, for the log)."""
+    w = out["weights"].detach()
+    trans = 1.0 - (torch.cumsum(w, dim=1) - w)  # before each sample
+    free = (trans > tc.free_transmittance) & out["hit"][:, None]
+    n = free.sum().clamp_min(1)
+    term = (torch.relu(-out["sdf"]) * free).sum() / n
+    share = ((out["sdf"].detach() < 0) & free).sum() / n
+    return term, share
+
+
 def draw_pixels(data: Dataset, grid: SpanGrid, n_rays: int, spp: int, gen: torch.Generator,
                 ) -> tuple[torch.Tensor, ...]:
     """Pixels drawn in rounds of ``n_rays / spp`` until that many cross an occupied cell (at
@@ -290,7 +305,7 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
             rescued = int(lost.sum())
     if grid is None:
         out = render_volume_rays(field, o, d, tc.n_samples, tc.n_importance, ray_bg, gen,
-                                 cull=tc.cull_weight)
+                                 cull=tc.cull_weight, slope=tc.slope)
         pred = out["color"].reshape(len(idx), spp, 3).mean(1)  # box filter
         rendered = len(o)
     else:
@@ -301,17 +316,20 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
         if rendered:
             out = render_volume_rays(field, o[m], d[m], tc.n_samples, tc.n_importance,
                                      ray_bg[m], gen,
-                                     span=(near[m], far[m], hit[m]), cull=tc.cull_weight)
+                                     span=(near[m], far[m], hit[m]), cull=tc.cull_weight,
+                                     slope=tc.slope)
             pred[crosses] = out["color"].reshape(-1, spp, 3).mean(1)  # box filter
     color = color_loss(pred, target, tc.color_loss)
     zero = color.new_zeros(())
     if out is None:
         points, off, share, near_ls = o.new_zeros(0, 3), zero, zero, None
+        free, free_share = zero, zero
         grad_samples = 0
     else:
         grad_samples = int(out["grad"].sum())
         points = out["points"]
         off, share, near_ls = off_band(field, out, tc)
+        free, free_share = free_space(out, tc)
     level_set = tc.reg_rays == "level_set" and out is not None
     pts = reg_points(field, points, tc.reg_points // tc.shards, gen,
                      weights=out["weights"] if level_set else None,
@@ -322,12 +340,14 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
             + w_normal * reg["normal"])
     if tc.offband_weight > 0:
         loss = loss + tc.offband_weight * off
+    if tc.free_weight > 0:
+        loss = loss + tc.free_weight * free
     with torch.no_grad():
         mse = ((pred.clamp(0, 1) - target) ** 2).mean().item()
     return loss, {"loss": loss.item(), "color": color.item(),
                   "eikonal": reg["eikonal"].item(), "normal": reg["normal"].item(),
                   "smooth": reg["smooth"].item(), "w_normal": w_normal, "psnr": psnr_of(mse),
-                  "off_band": float(share),
+                  "off_band": float(share), "free_negative": float(free_share),
                   "rays": float(len(idx) * spp),
                   "samples": float(rendered * (tc.n_samples + tc.n_importance)),
                   "grad_samples": float(grad_samples), "rescued": float(rescued)}
@@ -374,7 +394,7 @@ def evaluate(field: ShellField, data: Dataset, tc: TrainConfig, max_views: int =
     for i in range(n):
         o, d = data.cameras.pixel_rays(i, tc.pixel_samples)
         img = render_volume_image(field, o.to(device), d.to(device), tc.n_samples,
-                                  tc.n_importance, bg, grid=grid)
+                                  tc.n_importance, bg, grid=grid, slope=tc.slope)
         pred = img["color"].reshape(-1, tc.pixel_samples, 3).mean(1)  # box filter
         pred = pred.reshape(data.images.shape[1:]).cpu()
         scores.append(psnr(pred.numpy(), data.images[i].numpy()))

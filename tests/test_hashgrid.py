@@ -167,3 +167,34 @@ def test_init_range_and_bad_input():
         g(torch.zeros(4, 2))
     with pytest.raises(InputError):
         level_layout(2, 4, 2 ** 6 + 2, 2, 2.0)  # table size not a multiple of F
+
+
+@pytest.mark.parametrize("cfg", [TOY, ODD])
+def test_lookup_without_gradient_runs_drjit_and_matches_torch_bit_for_bit(cfg, monkeypatch):
+    """``inference`` "auto": without gradient the lookup is ``dr.nn.HashGridEncoding`` on the
+    parameter memory itself; the floats equal the torch lookup's, also after the parameters
+    change in place (no stale copy)."""
+    import shells.fields.hashgrid as hg
+
+    g = _grid(*cfg)
+    x = _points(3000)
+    calls = []
+    real = hg._drjit_lookup
+    monkeypatch.setattr(hg, "_drjit_lookup", lambda grid, p: calls.append(len(p)) or real(grid, p))
+    for _ in range(2):
+        torch_out = g(x).detach()  # gradient enabled: the torch path
+        with torch.no_grad():
+            dj = g(x)
+        assert torch.equal(dj, torch_out)
+        with torch.no_grad():
+            g.params.mul_(-0.5).add_(0.01)  # an optimiser step, in place
+    assert calls == [3000, 3000]
+    g.inference = "torch"
+    with torch.no_grad():
+        g(x)
+    assert calls == [3000, 3000]
+    # points that need a gradient keep the torch path even without parameter gradients
+    g.inference = "auto"
+    g.params.requires_grad_(False)
+    xg = x.clone().requires_grad_()
+    assert g(xg).requires_grad and calls == [3000, 3000]

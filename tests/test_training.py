@@ -385,6 +385,27 @@ def test_off_band_weight_hand_worked():
     assert torch.allclose(w.grad, torch.tensor([[0, 0, 0.5], [0, 0, 0.5]]))
 
 
+def test_free_space_term_hand_worked():
+    """The free-space term: mean relu(-f) over the samples reached with transmittance above
+    0.99 (T_i = 1 - the weight before i). Ray 0: T = 1, 1, 0.995, 0.5, so its first three
+    samples are free, f = 0.2, -0.3, -0.1 -> 0, 0.3, 0.1; ray 1 misses its span (no sample).
+    Mean 0.4 / 3; two of the three free samples are at f < 0."""
+    from shells.config import TrainConfig
+    from shells.training import free_space
+
+    tc = TrainConfig(free_weight=0.1)
+    sdf = torch.tensor([[0.2, -0.3, -0.1, -0.5], [-1.0, -1.0, -1.0, -1.0]], requires_grad=True)
+    out = {"weights": torch.tensor([[0.0, 0.005, 0.495, 0.5], [0.0, 0.0, 0.0, 0.0]]),
+           "sdf": sdf, "hit": torch.tensor([True, False])}
+    term, share = free_space(out, tc)
+    assert term.item() == pytest.approx(0.4 / 3)
+    assert share.item() == pytest.approx(2 / 3)
+    term.backward()
+    assert torch.allclose(sdf.grad, torch.tensor([[0, -1 / 3, -1 / 3, 0], [0, 0, 0, 0]]))
+    with pytest.raises(InputError, match="train.free_transmittance"):
+        toy_config().update({"train": {"free_transmittance": 1.0}}, "x.json")
+
+
 def test_level_set_regulariser_points_come_from_weight_and_band(tiny_blender):
     """reg_rays 'level_set': the ray half of the points is drawn only where the weight is and
     among the near-level-set samples, half each; the other half stays uniform in the box."""

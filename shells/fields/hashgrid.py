@@ -3,7 +3,10 @@
 The layout is written down once, in `level_layout`; the fast torch encoding (`HashGrid`, used for
 training), the slow loop reference (`hashgrid_reference`) and the Dr.Jit inference twin
 (``shells.fields.drjit_field``, which hands our flat parameter tensor to
-``dr.nn.HashGridEncoding.set_params``) all follow it. The layout, per level l:
+``dr.nn.HashGridEncoding.set_params``) all follow it. Lookups that need no gradient (the
+training renderer's sample-placement pass, occupancy-grid rebuilds, evaluation) go through
+``dr.nn.HashGridEncoding`` itself on the CPU (`HashGrid.inference`): one fused LLVM kernel
+on the same parameter memory, the same numbers bit for bit. The layout, per level l:
 
     scale_l  = 2**(l * log2(per_level_scale)) * base_resolution - 1      (float64, used as float32)
     res_l    = ceil(scale_l) + 1                                         (grid vertices per axis)
@@ -20,7 +23,9 @@ row r, feature f at r * F + f; the output is ordered [l0f0, l0f1, l1f0, ...].
 
 from __future__ import annotations
 
+import functools
 import math
+import threading
 from dataclasses import dataclass
 
 import drjit as dr
@@ -92,7 +97,15 @@ class HashGrid(nn.Module):
     All levels and all 8 corners are looked up with one gather (`_Lookup`: an `index_select`
     and a weighted sum, whose backward is one `index_add_`), the index math done once in int64.
     Gradients flow to `params` and to the input points (through the trilinear weights).
+
+    ``inference`` "auto" (default): a lookup that needs no gradient, of CPU tensors, runs as
+    ``dr.nn.HashGridEncoding`` on Dr.Jit's LLVM backend (`_drjit_lookup`), which reads `params`
+    in place and gives the same floats; "torch": always the torch lookup. Dr.Jit's fused
+    kernel does not pay off for the backward on the CPU (its atomic scatter took longer than
+    the torch `index_add_`; BENCHMARKS.md), so gradients always take the torch path.
     """
+
+    inference: str = "auto"
 
     def __init__(self, n_levels: int, n_features: int, hashmap_size: int, base_resolution: int,
                  per_level_scale: float, init_scale: float = 1e-4) -> None:
@@ -172,9 +185,53 @@ class HashGrid(nn.Module):
         if x01.ndim != 2 or x01.shape[1] != 3:
             raise InputError(f"HashGrid: points must be [N, 3], got {tuple(x01.shape)}")
         N = x01.shape[0]
+        if (self.inference == "auto" and x01.device.type == "cpu" and _llvm()
+                and not (torch.is_grad_enabled()
+                         and (self.params.requires_grad or x01.requires_grad))):
+            return _drjit_lookup(self, x01)
         rows, wts = self.corner_rows_weights(x01)
         out = _Lookup.apply(self.params, rows.view(8, -1), wts.view(8, -1), self.n_features)
         return out.view(self.n_levels, N, self.n_features).transpose(0, 1).reshape(N, -1)
+
+
+_ENCODING_LOCK = threading.Lock()
+
+
+@functools.cache
+def _llvm() -> bool:
+    """Whether Dr.Jit's LLVM backend is usable here (it needs libLLVM at run time)."""
+    return bool(dr.has_backend(dr.JitBackend.LLVM))
+
+
+@functools.cache
+def _encoding(n_levels: int, n_features: int, hashmap_size: int, base_resolution: int,
+              per_level_scale: float):
+    """One ``dr.nn.HashGridEncoding`` per layout, reused; its ``data`` is set per call."""
+    from drjit.llvm import Float
+
+    return dr.nn.HashGridEncoding(Float, 3, n_levels=n_levels, n_features_per_level=n_features,
+                                  hashmap_size=hashmap_size, base_resolution=base_resolution,
+                                  per_level_scale=per_level_scale)
+
+
+def _drjit_lookup(grid: HashGrid, x01: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [N, L*F]
+    """The encoding through ``dr.nn.HashGridEncoding`` (no gradient): the parameters and the
+    points are handed over without a copy (DLPack), all levels run in one kernel, and reading
+    the outputs back waits for it, so `params` may change again as soon as this returns."""
+    from drjit.llvm import Float
+
+    enc = _encoding(grid.n_levels, grid.n_features, grid.hashmap_size, grid.base_resolution,
+                    grid.per_level_scale)
+    x = x01.detach().float()
+    with _ENCODING_LOCK:  # the shared encoding's data is set per call
+        enc.data = Float(grid.params.detach().contiguous())
+        try:
+            out = enc([Float(x[:, i].contiguous()) for i in range(3)])
+            dr.eval(out)  # one kernel for every output, not one per feature
+            res = torch.stack([o.torch() for o in out], dim=1)
+        finally:
+            enc.data = Float()  # do not hold on to the torch parameter memory
+    return res
 
 
 class _Lookup(torch.autograd.Function):

@@ -153,6 +153,20 @@ def sample_pdf(t: torch.Tensor,  # [R, S] sorted sample positions
     return e0 + frac * (e1 - e0)
 
 
+def ray_slope(sdf: torch.Tensor,  # [R, S] at the samples
+              t: torch.Tensor,  # [R, S] sorted ray distances (world units)
+              ) -> torch.Tensor:  # [R, S]
+    """df/dt along each ray from the samples themselves (``slope`` "ray" of
+    `render_volume_rays`): central differences (f_{i+1} - f_{i-1}) / (t_{i+1} - t_{i-1}) inside,
+    one-sided at the two ends; 0 where the samples coincide (a ray that misses its span)."""
+    if sdf.shape[1] < 2:
+        return torch.zeros_like(sdf)
+    f = torch.cat([sdf[:, :1], sdf, sdf[:, -1:]], dim=1)
+    x = torch.cat([t[:, :1], t, t[:, -1:]], dim=1)
+    df, dt = f[:, 2:] - f[:, :-2], x[:, 2:] - x[:, :-2]
+    return torch.where(dt > 1e-12, df / dt.clamp_min(1e-12), torch.zeros_like(df))
+
+
 def section_edges(t: torch.Tensor,  # [R, S] sorted
                   near: torch.Tensor,  # [R]
                   far: torch.Tensor,  # [R]
@@ -171,6 +185,7 @@ def render_volume_rays(field: torch.nn.Module,
                 generator: torch.Generator | None = None,
                 span: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                 cull: float = 0.0,
+                slope: str = "normal",
                 ) -> dict[str, torch.Tensor]:
     """Render rays through the field's scene box (`field.aabb`), or through ``span`` = (near,
     far, hit) [R] each when given (`SpanGrid.spans`). An unbounded field (`field.similarity`)
@@ -183,6 +198,12 @@ def render_volume_rays(field: torch.nn.Module,
     keep their values, detached, so the forward is the same render (to float rounding) and
     only their own gradient is dropped: d color / d rgb_i = w_i < cull, and for a sample with
     weight w_i < cull in front of the surface, d alpha_i / d sdf_i ~ alpha_i / s.
+
+    ``slope`` (`TrainConfig.slope`): where the NeuS opacity takes the SDF's slope along the ray
+    from. "normal": cos = d . n with n the field's predicted normal (the paper; what the band
+    and Dr.Jit renderers do). "ray": df/dt from the ray's own samples (`ray_slope`), so a ray
+    is absorbed where f falls through zero whatever the predicted normal says, and it cannot
+    pass a crossing to be absorbed deeper inside the solid, where no skipping renderer samples.
 
     Returns color [R, 3], opacity [R], depth [R] (expected t), weights [R, S], points [R, S, 3],
     s [R, S], hit [R] and grad [R, S] (the samples evaluated with gradient). Rays that miss the
@@ -200,6 +221,14 @@ def render_volume_rays(field: torch.nn.Module,
         near, far, hit = ray_aabb(origins, dirs, field.aabb) if span is None else span
         def to_t(u: torch.Tensor) -> torch.Tensor:
             return u
+    if slope not in ("normal", "ray"):
+        raise ValueError(f"slope must be 'normal' or 'ray', got {slope!r}")
+
+    def cos_of(out: dict[str, torch.Tensor], d: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        if slope == "ray":
+            return ray_slope(out["sdf"], t)
+        return (out["normal"] * d).sum(-1)
+
     u = stratified_samples(near, far, n_samples, generator)
     R = u.shape[0]
     culled = cull > 0 and torch.is_grad_enabled()
@@ -211,7 +240,7 @@ def render_volume_rays(field: torch.nn.Module,
             # distance order
             with torch.no_grad():
                 delta = torch.diff(to_t(section_edges(u, near, far)), dim=-1)
-                cos = (out["normal"] * dirs[:, None]).sum(-1)
+                cos = cos_of(out, dirs[:, None], to_t(u))
                 alpha = neus_alpha(out["sdf"], out["s"], cos, delta)
                 _, w, _ = composite(alpha, torch.zeros(*u.shape, 3, device=u.device),
                                     background)
@@ -226,15 +255,15 @@ def render_volume_rays(field: torch.nn.Module,
     pts = origins[:, None] + t[..., None] * dirs[:, None]  # [R, S, 3]
     if culled:  # the gradient pass on the samples that carry weight
         with torch.no_grad():
-            cos = (out["normal"] * d).sum(-1)
+            cos = cos_of(out, d, t)
             alpha = neus_alpha(out["sdf"], out["s"], cos, delta) * hit[:, None]
             keep = composite(alpha, out["rgb"], background)[1] >= cull  # [R, S]
         live = field(pts[keep], d[keep])
         out = {k: v.index_put((keep,), live[k]) for k, v in out.items()}
     else:
         keep = torch.ones_like(u, dtype=torch.bool)
-    sdf, s, normal, rgb = out["sdf"], out["s"], out["normal"], out["rgb"]
-    cos = (normal * d).sum(-1)
+    sdf, s, rgb = out["sdf"], out["s"], out["rgb"]
+    cos = cos_of(out, d, t)
     alpha = neus_alpha(sdf, s, cos, delta) * hit[:, None]
     color, weights, opacity = composite(alpha, rgb, background)
     depth = (weights * t).sum(-1)
@@ -269,15 +298,17 @@ def render_volume_image(field: torch.nn.Module,
                  background: torch.Tensor,  # [3]
                  chunk: int = 4096,
                  grid: SpanGrid | None = None,
+                 slope: str = "normal",
                  ) -> dict[str, torch.Tensor]:
     """Deterministic chunked rendering of many rays (evaluation): color [P, 3], opacity [P].
-    With ``grid``, each ray is sampled on its occupied span (as in training)."""
+    With ``grid``, each ray is sampled on its occupied span (as in training); ``slope`` as in
+    `render_volume_rays`."""
     colors, opac = [], []
     for i in range(0, origins.shape[0], chunk):
         o, d = origins[i:i + chunk], dirs[i:i + chunk]
         span = None if grid is None else grid.spans(o, d)
         out = render_volume_rays(field, o, d, n_samples, n_importance, background,
-                                 generator=None, span=span)
+                                 generator=None, span=span, slope=slope)
         colors.append(out["color"])
         opac.append(out["opacity"])
     return {"color": torch.cat(colors), "opacity": torch.cat(opac)}
