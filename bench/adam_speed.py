@@ -14,10 +14,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import shutil
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -29,6 +27,7 @@ import shells.training as training  # noqa: E402
 from shells.config import toy_config  # noqa: E402
 from shells.loop import make_optimizer  # noqa: E402
 
+from preset_speed import preset_rays_per_s  # noqa: E402
 from report import emit_json  # noqa: E402
 
 KERNELS = {"per-tensor": {"fused": False, "foreach": False},
@@ -60,19 +59,12 @@ def step_ms(kernel: str) -> float:
 
 
 def train_rays_per_s(data: str, downscale: int, iters: int, kernel: str) -> float:
-    cpu = torch.device("cpu")
-    cfg, _ = training.preset_config("auto", data, downscale, cpu)
-    cfg.update({"train": {"iters": iters}}, "bench/adam_speed.py")
     original = training.make_optimizer
     training.make_optimizer = lambda *a: with_kernel(original(*a), kernel)
-    run = Path(tempfile.mkdtemp(prefix="adam_speed_"))
     try:
-        s = training.train(data, run / "run", cfg, cpu, downscale=downscale, progress=False,
-                           evaluate_test=False)
+        return preset_rays_per_s(data, downscale, iters, "bench/adam_speed.py")
     finally:
         training.make_optimizer = original
-        shutil.rmtree(run, ignore_errors=True)
-    return s["rays_per_s"]
 
 
 def main() -> int:

@@ -19,10 +19,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import shutil
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -34,6 +32,7 @@ import shells.training as training  # noqa: E402
 from shells.config import toy_config  # noqa: E402
 from shells.fields.hashgrid import HashGrid  # noqa: E402
 
+from preset_speed import preset_rays_per_s  # noqa: E402
 from report import emit_json  # noqa: E402
 
 PATHS = ("torch", "auto")
@@ -63,19 +62,12 @@ def lookup_ms(n: int = 49152) -> tuple[dict[str, float], bool]:
 
 
 def train_rays_per_s(data: str, downscale: int, iters: int, path: str) -> float:
-    cpu = torch.device("cpu")
-    cfg, _ = training.preset_config("auto", data, downscale, cpu)
-    cfg.update({"train": {"iters": iters}}, "bench/hashgrid_inference.py")
-    run = Path(tempfile.mkdtemp(prefix="hashgrid_inference_"))
     old = HashGrid.inference
     HashGrid.inference = path
     try:
-        s = training.train(data, run / "run", cfg, cpu, downscale=downscale, progress=False,
-                           evaluate_test=False)
+        return preset_rays_per_s(data, downscale, iters, "bench/hashgrid_inference.py")
     finally:
         HashGrid.inference = old
-        shutil.rmtree(run, ignore_errors=True)
-    return s["rays_per_s"]
 
 
 def main() -> int:
