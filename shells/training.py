@@ -147,15 +147,14 @@ def regularisers(field: ShellField,
     the far solid: that solid is an exact SDF with exact normals, so on min(f_net, solid) the
     terms fell to zero once f_net rose above the solid everywhere, and they drove it there
     (the toy ball was gone within 150 steps of the regularisers alone; BENCHMARKS.md)."""
-    grad = field.sdf_gradient_fd(points, fd_eps, far=False)  # [M, 3]
+    noise = torch.randn(points.shape, generator=gen, device=points.device) * smooth_eps
+    probe = field.regulariser_probe(points, fd_eps, points + noise)  # one batched evaluation
+    grad = probe["grad"]  # [M, 3]
     gnorm = grad.norm(dim=-1)
     eikonal = ((gnorm - 1.0) ** 2).mean()
-    geo = field.geometry_field(points, far=False)
     target = grad.detach() / gnorm.detach().clamp_min(1e-6)[:, None]
-    normal = (geo["normal"] - target).norm(dim=-1).mean()
-    noise = torch.randn(points.shape, generator=gen, device=points.device) * smooth_eps
-    s_near = field.kernel(points + noise, far=False)
-    smooth = (torch.log(geo["s"]) - torch.log(s_near)).abs().mean()
+    normal = (probe["normal"] - target).norm(dim=-1).mean()
+    smooth = (torch.log(probe["s"]) - torch.log(probe["s_extra"])).abs().mean()
     return {"eikonal": eikonal, "normal": normal, "smooth": smooth}
 
 

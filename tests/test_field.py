@@ -88,6 +88,31 @@ def test_sdf_gradient_fd_exact_on_linear_sdf():
                                atol=1e-4, rtol=0)  # fp32 (f(x+e) - f(x-e)) / 0.02
 
 
+def test_regulariser_probe_matches_the_three_separate_calls_forward_and_backward():
+    # the one batched evaluation of the regularisers = sdf_gradient_fd + geometry_field +
+    # kernel at the noisy points, network alone, values and every parameter's gradient
+    f = _field()
+    with torch.no_grad():  # move the hash columns and the table off their init
+        f.geo_mlp[0].weight[:, 3:].normal_(0, 0.3)
+        f.grid.params.normal_(0, 0.1)
+    x, y = _in_box(BOX * 0.9, 300, seed=2), _in_box(BOX * 0.9, 300, seed=3)
+    probe = f.regulariser_probe(x, 1e-3, y)
+    geo = f.geometry_field(x, far=False)
+    ref = dict(grad=f.sdf_gradient_fd(x, 1e-3, far=False), normal=geo["normal"], s=geo["s"],
+               s_extra=f.kernel(y, far=False))
+    grads = []
+    for out in (probe, ref):
+        f.zero_grad()
+        (out["grad"].norm(dim=-1).sub(1).square().mean() + out["normal"].sum()
+         + out["s"].log().mean() - out["s_extra"].log().mean()).backward()
+        grads.append([p.grad.clone() for p in f.parameters() if p.grad is not None])
+    assert len(grads[0]) == len(grads[1]) == 5  # the hash table and the geometry MLP
+    for k in ref:  # the same floats up to the matmul's blocking over a longer batch
+        torch.testing.assert_close(probe[k], ref[k], rtol=1e-5, atol=1e-5)
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
 def test_forward_shapes_ranges_and_consistency():
     f = _field()
     x = _in_box(BOX, 64)

@@ -248,3 +248,24 @@ class ShellField(nn.Module):
         pts = torch.cat([x[:, None, :] + offs, x[:, None, :] - offs], dim=1)  # [N, 6, 3]
         f = self.sdf(pts.reshape(-1, 3), far).view(-1, 6)
         return (f[:, :3] - f[:, 3:]) / (2.0 * eps)
+
+    def regulariser_probe(self, z: torch.Tensor,  # [N, 3] field space
+                          eps: float,
+                          z_extra: torch.Tensor,  # [M, 3] field space
+                          ) -> dict[str, torch.Tensor]:
+        """The network alone (no far solid) at z, at z +- eps e_i and at z_extra, in one
+        batched evaluation: one hash-grid lookup, hence one gradient scatter into the table
+        where three separate calls made three, each into a zeroed table-sized buffer, then
+        summed (BENCHMARKS.md). Returns ``grad`` [N, 3] (= `sdf_gradient_fd` (z, eps, far=
+        False)), ``normal`` [N, 3] and ``s`` [N] (= `geometry_field` (z, far=False)) and
+        ``s_extra`` [M] (= `kernel` (z_extra, far=False))."""
+        N = z.shape[0]
+        offs = torch.eye(3, dtype=z.dtype, device=z.device) * eps  # [3, 3]
+        fd = torch.cat([z[:, None, :] + offs, z[:, None, :] - offs], dim=1).reshape(-1, 3)
+        raw = self._geo_raw(torch.cat([fd, z, z_extra]), far=False)[1]
+        f = raw[:6 * N, 0].view(N, 6)
+        centre, G = raw[6 * N:7 * N], self.cfg.geo_feature_dim
+        return dict(grad=(f[:, :3] - f[:, 3:]) / (2.0 * eps),
+                    normal=F.normalize(centre[:, 2 + G:], dim=1, eps=NORMAL_EPS),
+                    s=self.kernel_from_logit(centre[:, 1]),
+                    s_extra=self.kernel_from_logit(raw[7 * N:, 1]))
