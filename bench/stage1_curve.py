@@ -25,7 +25,7 @@ machine state.
 archive`, run by `bench/stage1_curve_old.py` in a child process): the stage 1 of the day an
 issue was filed, code and config, where the default old run is the old config on today's
 code (every per-sample speed-up since included). The toy preset on today's code is then the
-run "old config", trained as well.
+run "old config", trained as well (unless ``--no-old-config``).
 ``--replot A/curve.json[:LABEL] B/curve.json[:LABEL] ...`` trains nothing and draws the runs of
 earlier invocations in one plot and table (a run named again gets " (LABEL)" appended).
 """
@@ -181,6 +181,8 @@ def main() -> int:
     p.add_argument("--old-commit", default=None, metavar="REV",
                    help="train the old run with the code of this commit (e.g. 9e6bc1f, before "
                         "issue 13); the old config on today's code becomes \"old config\"")
+    p.add_argument("--no-old-config", action="store_true",
+                   help="with --old-commit: do not also train the old config on today's code")
     p.add_argument("--replot", nargs="+", default=None, metavar="CURVE_JSON[:LABEL]")
     args = p.parse_args()
     variants = []
@@ -207,6 +209,8 @@ def main() -> int:
         new.update(read_config_file(args.config_new), args.config_new)
     # (name, config, the --only value that trains it: None for the variants, which always do)
     runs = [("old config" if args.old_commit else "old", old, "old"), ("new", new, "new")]
+    if args.old_commit and args.no_old_config:
+        runs = runs[1:]
     for label, extra in variants:
         cfg, _ = preset_config("auto", args.data, args.downscale, device)
         cfg.update(extra, label)
