@@ -1,5 +1,7 @@
 """Full-ray torch volume rendering helpers: hand-worked numbers."""
 
+import math
+
 import torch
 
 from shells.render.volume import ray_aabb, sample_pdf, section_edges, stratified_samples
@@ -97,6 +99,18 @@ def test_span_grid_spans_contain_the_surface():
     assert not hit[far_away].any()
     # spans are never longer than the chord
     assert (near >= n0 - 1e-6).all() and (far <= f0 + 1e-6).all()
+    # the same floats as the plain [R, n, 3] formulation of the probes' cells
+    step = 0.5 * float(grid.cell.min())
+    n = int(math.ceil(float((f0 - n0).max()) / step))
+    t = n0[:, None] + step * (torch.arange(n, dtype=o.dtype) + 0.5)
+    c = ((o[:, None] + t[..., None] * d[:, None] - BOX[0]) / grid.cell).floor().long()
+    c = c.clamp(0, grid.N - 1)
+    m = grid.occ[c[..., 0], c[..., 1], c[..., 2]] & (t < f0[:, None])
+    first, last = m.float().argmax(1), n - 1 - m.flip(1).float().argmax(1)
+    lo = torch.maximum(n0, n0 + step * (first + 0.5) - 2.0 * grid.h)
+    hi = torch.minimum(f0, n0 + step * (last + 0.5) + 2.0 * grid.h)
+    assert torch.equal(hit, m.any(1) & h0) and torch.equal(near, lo)
+    assert torch.equal(far, torch.where(hit, hi, lo))
 
 
 def _rays(n, seed):
@@ -151,9 +165,11 @@ def test_single_evaluation_matches_the_two_pass_renderer_forward_and_backward():
 
 
 def test_culled_gradient_pass_keeps_the_render_and_drops_only_light_samples():
-    """``cull``: the samples under the weight threshold keep their values without gradient.
-    The render is unchanged; the gradient loses only what those samples carry."""
-    from shells.render.volume import render_volume_rays
+    """``cull``: the samples under the weight threshold keep their values without gradient,
+    and those under UNLIT * cull their geometry only. The render is the unculled one less
+    exactly the colour those last samples carry; the gradient loses only what the light
+    samples carry."""
+    from shells.render.volume import UNLIT, render_volume_rays
 
     f = _SphereField().double()
     f.c = f.c.double()
@@ -162,19 +178,32 @@ def test_culled_gradient_pass_keeps_the_render_and_drops_only_light_samples():
     bg = torch.ones(3, dtype=torch.float64)
     ref = render_volume_rays(f, o, d, 16, 8, bg, torch.Generator().manual_seed(5))
     (g_ref,) = torch.autograd.grad(ref["color"].sum(), f.w)
-    calls = []
+    calls, geo_calls = [], []
     f.register_forward_hook(lambda m, args, out: calls.append(len(args[0])))
+    geometry = f.geometry
+    f.geometry = lambda x: geo_calls.append(len(x)) or geometry(x)
     out = render_volume_rays(f, o, d, 16, 8, bg, torch.Generator().manual_seed(5), cull=1e-4)
     (g_out,) = torch.autograd.grad(out["color"].sum(), f.w)
-    for k in ("color", "opacity", "weights", "sdf", "s"):
+    w = ref["weights"].detach()
+    kept, unlit = w >= 1e-4, w < UNLIT * 1e-4
+    lit = ~kept & ~unlit
+    for k in ("opacity", "weights", "sdf", "s"):
         torch.testing.assert_close(out[k], ref[k], rtol=0, atol=1e-12)
-    # coarse and fine passes without gradient, then one pass on the kept samples: a sharp
-    # sphere leaves a few per hitting ray, under a quarter of them
-    assert calls[:2] == [64 * 16, 64 * 8] and len(calls) == 3
-    kept = ref["weights"].detach() >= 1e-4
-    assert calls[2] == int(kept.sum()) and 0 < calls[2] < 0.25 * 64 * 24
-    # the gradient is the reference's with the light samples' field values detached
+    # the colour of the unlit samples is all that is missing: at most 24 * 1e-6 per channel
+    rgb = torch.sigmoid(f.w * ref["points"] + d.sum(-1)[:, None, None])  # _SphereField's
+    missing = (w[..., None] * rgb)[unlit].sum(0)
+    short = (ref["color"] - out["color"]).detach()
+    torch.testing.assert_close(short.sum(0), missing.detach(), rtol=0, atol=1e-12)
+    assert float(short.min()) >= -1e-12 and float(short.max()) <= 24 * UNLIT * 1e-4
+    assert int(unlit.sum()) > 0.5 * w.numel()  # most samples: empty or occluded space
+    # coarse and fine geometry without gradient, colours of the lit samples without gradient,
+    # then one pass on the kept samples: a sharp sphere keeps under a quarter of them
+    assert geo_calls[:2] == [64 * 16, 64 * 8]
+    assert calls == [int(lit.sum()), int(kept.sum())] and 0 < calls[1] < 0.25 * 64 * 24
+    # the gradient is the reference's with the light samples' field values detached and the
+    # unlit samples' colours zero
     light = {tuple(p) for p in ref["points"][~kept].tolist()}
+    dark = {tuple(p) for p in ref["points"][unlit].tolist()}
 
     class Detached(torch.nn.Module):
         def __init__(self):
@@ -184,8 +213,11 @@ def test_culled_gradient_pass_keeps_the_render_and_drops_only_light_samples():
         def forward(self, x, dd):
             g = self.inner(x, dd)
             m = torch.tensor([tuple(p) in light for p in x.tolist()])
-            return {k: torch.where(m.view(-1, *[1] * (v.ndim - 1)), v.detach(), v)
-                    for k, v in g.items()}
+            g = {k: torch.where(m.view(-1, *[1] * (v.ndim - 1)), v.detach(), v)
+                 for k, v in g.items()}
+            g["rgb"] = torch.where(torch.tensor([tuple(p) in dark for p in x.tolist()])[:, None],
+                                   torch.zeros_like(g["rgb"]), g["rgb"])
+            return g
 
     part = render_volume_rays(Detached(), o, d, 16, 8, bg, torch.Generator().manual_seed(5))
     (g_part,) = torch.autograd.grad(part["color"].sum(), f.w)
