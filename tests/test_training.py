@@ -227,6 +227,8 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     # stage 2: 1500 steps of 4096 rays at 256 and at 512 (one doubling), 1000 more per doubling
     assert (cfg.finetune.iters, cfg.finetune.batch_rays) == (1500, 4096)
     assert (half.finetune.iters, half.finetune.batch_rays) == (1500, 4096)
+    # stage 1: 2048 crossing rays per step at the base size (256), 1024 above it
+    assert (half.train.batch_rays, cfg.train.batch_rays) == (2048, 1024)
     assert preset_config("toy", big, 1, cpu)[0].finetune.iters == 500
     # the weak Eikonal term is for bounded objects; an unbounded capture keeps the toy's 0.1
     from shells.contraction import Similarity
