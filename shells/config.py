@@ -486,9 +486,10 @@ def object_config(extent: float, focal_px: float, distance: float,
     doublings = max(0, int(round(math.log2(res / 256))))
     cfg.field = dataclasses.replace(cfg.field, max_resolution=res, n_levels=8 + doublings,
                                     log2_hashmap_size=min(21, 18 + doublings))
-    # 2048 crossing rays per step at the base size (lego 1/8: 4.60x the old code's rays/s
-    # against 3.03x at 1024, 31.47 dB in 555 s against 30.96 in 413 s, about equal at equal
-    # time); above it 1024, whose 6000 steps at 1/4 already take most of the 45 minutes
+    # 2048 crossing rays per step at the base size (lego 1/8, one run: 4.60x the old code's
+    # rays/s against 3.03x at 1024, 31.47 dB in 555 s against 30.96 in 413 s, about equal at
+    # equal time; a second run: 3.54x); above it 1024, whose 6000 steps at 1/4 already take
+    # most of the 45 minutes
     cfg.train = dataclasses.replace(cfg.train, sampler="occupancy", iters=3000 * (1 + doublings),
                                     batch_rays=2048 if doublings == 0 else 1024,
                                     reg_points=2048, eikonal_weight=eikonal_weight,
