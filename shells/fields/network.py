@@ -244,9 +244,7 @@ class ShellField(nn.Module):
                         eps: float, far: bool = True) -> torch.Tensor:  # [N, 3]
         """grad_z f by central differences (f(x + eps e_i) - f(x - eps e_i)) / (2 eps), one
         batched call; ``far`` False: of the network alone."""
-        offs = torch.eye(3, dtype=x.dtype, device=x.device) * eps  # [3, 3]
-        pts = torch.cat([x[:, None, :] + offs, x[:, None, :] - offs], dim=1)  # [N, 6, 3]
-        f = self.sdf(pts.reshape(-1, 3), far).view(-1, 6)
+        f = self.sdf(_fd_points(x, eps), far).view(-1, 6)
         return (f[:, :3] - f[:, 3:]) / (2.0 * eps)
 
     def regulariser_probe(self, z: torch.Tensor,  # [N, 3] field space
@@ -260,12 +258,17 @@ class ShellField(nn.Module):
         False)), ``normal`` [N, 3] and ``s`` [N] (= `geometry_field` (z, far=False)) and
         ``s_extra`` [M] (= `kernel` (z_extra, far=False))."""
         N = z.shape[0]
-        offs = torch.eye(3, dtype=z.dtype, device=z.device) * eps  # [3, 3]
-        fd = torch.cat([z[:, None, :] + offs, z[:, None, :] - offs], dim=1).reshape(-1, 3)
-        raw = self._geo_raw(torch.cat([fd, z, z_extra]), far=False)[1]
+        raw = self._geo_raw(torch.cat([_fd_points(z, eps), z, z_extra]), far=False)[1]
         f = raw[:6 * N, 0].view(N, 6)
         centre, G = raw[6 * N:7 * N], self.cfg.geo_feature_dim
         return dict(grad=(f[:, :3] - f[:, 3:]) / (2.0 * eps),
                     normal=F.normalize(centre[:, 2 + G:], dim=1, eps=NORMAL_EPS),
                     s=self.kernel_from_logit(centre[:, 1]),
                     s_extra=self.kernel_from_logit(raw[7 * N:, 1]))
+
+
+def _fd_points(x: torch.Tensor, eps: float) -> torch.Tensor:  # [N, 3] -> [6 N, 3]
+    """x + eps e_0, x + eps e_1, x + eps e_2, x - eps e_0, ... for each point in turn: the
+    central-difference neighbours of `ShellField.sdf_gradient_fd`."""
+    offs = torch.eye(3, dtype=x.dtype, device=x.device) * eps  # [3, 3]
+    return torch.cat([x[:, None, :] + offs, x[:, None, :] - offs], dim=1).reshape(-1, 3)
