@@ -112,7 +112,8 @@ class TrainConfig:
     # or on an unbounded field (its rays all end on the far solid)
     cull_weight: float = 0.0  # samples whose compositing weight (from a pass without
     # gradient) is below this get no gradient pass: they keep their values, detached (nerfacc's
-    # culling; the render is unchanged, `shells.render.volume.render_volume_rays`); 0 = off
+    # culling; the render is unchanged but for the colour of samples under UNLIT * this, at
+    # most S UNLIT cull per ray, `shells.render.volume.render_volume_rays`); 0 = off
     slope: str = "normal"  # where stage 1's NeuS opacity takes the SDF's slope along a ray:
     # "normal" = d . n, the predicted normal (paper Eq. 8); "ray" = df/dt from the ray's own
     # samples (central differences), so density sits where f falls through zero along the

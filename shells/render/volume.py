@@ -242,9 +242,9 @@ def render_volume_rays(field: torch.nn.Module,
     u = stratified_samples(near, far, n_samples, generator)
     R = u.shape[0]
     culled = cull > 0 and torch.is_grad_enabled()
-    at = _geometry_at if culled else _field_at  # culled: colours once the weights are known
+    colour = not culled  # culled: the colours once the weights are known
     with torch.no_grad() if culled else contextlib.nullcontext():
-        out = at(field, origins, dirs, to_t(u))
+        out = _field_at(field, origins, dirs, to_t(u), colour)
         if n_importance > 0:
             # the coarse samples are evaluated once (with gradient unless culled); their
             # weights (detached) place the fine samples, which are evaluated and merged in
@@ -256,7 +256,7 @@ def render_volume_rays(field: torch.nn.Module,
                 _, w, _ = composite(alpha, torch.zeros(*u.shape, 3, device=u.device),
                                     background)
                 u_fine = sample_pdf(u, w, near, far, n_importance, generator)
-            fine = at(field, origins, dirs, to_t(u_fine))
+            fine = _field_at(field, origins, dirs, to_t(u_fine), colour)
             u, order = torch.sort(torch.cat([u, u_fine], dim=-1), dim=-1)
             out = {k: _merge(out[k], fine[k], order) for k in out}
     t = to_t(u)
@@ -290,22 +290,14 @@ def render_volume_rays(field: torch.nn.Module,
 
 def _field_at(field: torch.nn.Module, origins: torch.Tensor, dirs: torch.Tensor,
               t: torch.Tensor,  # [R, S]
+              colour: bool = True,  # False: the geometry only (no radiance MLP, no rgb)
               ) -> dict[str, torch.Tensor]:  # sdf, s [R, S]; normal, rgb [R, S, 3]
     R, S = t.shape
-    pts = origins[:, None] + t[..., None] * dirs[:, None]
-    out = field(pts.reshape(-1, 3), dirs[:, None].expand(R, S, 3).reshape(-1, 3))
-    return {"sdf": out["sdf"].reshape(R, S), "s": out["s"].reshape(R, S),
-            "normal": out["normal"].reshape(R, S, 3), "rgb": out["rgb"].reshape(R, S, 3)}
-
-
-def _geometry_at(field: torch.nn.Module, origins: torch.Tensor, dirs: torch.Tensor,
-                 t: torch.Tensor,  # [R, S]
-                 ) -> dict[str, torch.Tensor]:  # sdf, s [R, S]; normal [R, S, 3]
-    """What placing samples needs (`_field_at` without the radiance MLP)."""
-    R, S = t.shape
-    geo = field.geometry((origins[:, None] + t[..., None] * dirs[:, None]).reshape(-1, 3))
-    return {"sdf": geo["sdf"].reshape(R, S), "s": geo["s"].reshape(R, S),
-            "normal": geo["normal"].reshape(R, S, 3)}
+    pts = (origins[:, None] + t[..., None] * dirs[:, None]).reshape(-1, 3)
+    out = (field(pts, dirs[:, None].expand(R, S, 3).reshape(-1, 3)) if colour
+           else field.geometry(pts))
+    keys = ("sdf", "s", "normal", "rgb") if colour else ("sdf", "s", "normal")
+    return {k: out[k].reshape(R, S, *out[k].shape[1:]) for k in keys}
 
 
 def _merge(a: torch.Tensor, b: torch.Tensor,  # [R, S1, ...], [R, S2, ...]
