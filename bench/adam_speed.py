@@ -17,6 +17,7 @@ import dataclasses
 import statistics
 import sys
 import time
+from unittest import mock
 from pathlib import Path
 
 import torch
@@ -60,11 +61,9 @@ def step_ms(kernel: str) -> float:
 
 def train_rays_per_s(data: str, downscale: int, iters: int, kernel: str) -> float:
     original = training.make_optimizer
-    training.make_optimizer = lambda *a: with_kernel(original(*a), kernel)
-    try:
+    with mock.patch.object(training, "make_optimizer",
+                           lambda *a: with_kernel(original(*a), kernel)):
         return preset_rays_per_s(data, downscale, iters, "bench/adam_speed.py")
-    finally:
-        training.make_optimizer = original
 
 
 def main() -> int:

@@ -22,6 +22,7 @@ import dataclasses
 import statistics
 import sys
 import time
+from unittest import mock
 from pathlib import Path
 
 import torch
@@ -62,12 +63,8 @@ def lookup_ms(n: int = 49152) -> tuple[dict[str, float], bool]:
 
 
 def train_rays_per_s(data: str, downscale: int, iters: int, path: str) -> float:
-    old = HashGrid.inference
-    HashGrid.inference = path
-    try:
+    with mock.patch.object(HashGrid, "inference", path):
         return preset_rays_per_s(data, downscale, iters, "bench/hashgrid_inference.py")
-    finally:
-        HashGrid.inference = old
 
 
 def main() -> int:
