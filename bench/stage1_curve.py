@@ -3,8 +3,8 @@
     python bench/stage1_curve.py --data ../shared/data/lego --downscale 8 --out OUT \
         --iters-old 3000 [--old-commit 9e6bc1f]
 
-Trains the same data twice, one after the other (never two trainings at once: on 2 cores they
-slow each other ~10x):
+Trains the same data twice, one after the other or interleaved (never two trainings at once: on
+2 cores they slow each other ~10x):
 
 * ``old``: the toy preset as it was before issue 13 (``sampler`` "box": every ray sampled over
   its whole chord through the scene box, 1024 rays per step);
@@ -26,6 +26,9 @@ archive`, run by `bench/stage1_curve_old.py` in a child process): the stage 1 of
 issue was filed, code and config, where the default old run is the old config on today's
 code (every per-sample speed-up since included). The toy preset on today's code is then the
 run "old config", trained as well (unless ``--no-old-config``).
+``--interleave`` trains the runs piece by piece in turn, the order reversed every round (old,
+new, new, old, old, new, ...), one never beside another: a drift of the machine's speed
+during the invocation then falls on all runs alike instead of on whichever trained last.
 ``--replot A/curve.json[:LABEL] B/curve.json[:LABEL] ...`` trains nothing and draws the runs of
 earlier invocations in one plot and table (a run named again gets " (LABEL)" appended).
 """
@@ -58,7 +61,9 @@ def score(run: Path, test, device: torch.device) -> float:
     return evaluate(field, test, cfg.train, 0, device, grid)["psnr"]
 
 
-def curve(name: str, cfg, args, test, device: torch.device) -> dict:
+def curve(name: str, cfg, args, test, device: torch.device):
+    """The run ``name`` piece by piece: a generator that trains and scores one piece per
+    step and returns (StopIteration.value) the run in `curve.json`'s form."""
     run = Path(args.out) / name
     shutil.rmtree(run, ignore_errors=True)
     iters = cfg.train.iters
@@ -77,13 +82,15 @@ def curve(name: str, cfg, args, test, device: torch.device) -> dict:
         print(f"{name}: step {k} ({steps} steps in {s['seconds']:.0f} s), {seconds:.0f} s "
               f"trained, test PSNR {p:.2f} dB (scored in {time.perf_counter() - t:.0f} s)",
               flush=True)
+        yield
     return {"iters": iters, "points": points, "seconds": seconds, "rays_per_s": rays / seconds,
             "samples_per_s": samples / seconds, "psnr": points[-1]["psnr"],
             "config": cfg.to_dict()}
 
 
-def old_code_curve(rev: str, args) -> dict:
-    """The old run trained by the code of commit ``rev`` (`bench/stage1_curve_old.py`)."""
+def old_code_curve(rev: str, args):
+    """The old run trained by the code of commit ``rev`` (`bench/stage1_curve_old.py`), one
+    child process per piece; a generator like `curve`."""
     repo = Path(__file__).resolve().parents[1]
     tree = Path(args.out) / "old_code"
     shutil.rmtree(tree, ignore_errors=True)
@@ -103,17 +110,52 @@ def old_code_curve(rev: str, args) -> dict:
     if args.iters_old is not None:
         cmd += ["--iters", str(args.iters_old)]
     env = {**os.environ, "PYTHONPATH": str(tree.resolve())}
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, text=True)
-    result = None
-    for line in proc.stdout:
-        if line.startswith("RESULT "):
-            result = json.loads(line[len("RESULT "):])
-        else:
-            print(line, end="", flush=True)
-    if proc.wait() or result is None:
-        raise SystemExit(f"--old-commit {rev}: the old run failed (exit {proc.returncode})")
-    result["code"] = f"commit {sha.stdout.strip()[:12]}"
-    return result
+    points, seconds, rays, result = [], 0.0, 0.0, None
+    for k in range(args.segments):
+        proc = subprocess.Popen(cmd + ["--segment", str(k)], env=env, stdout=subprocess.PIPE,
+                                text=True)
+        result = None
+        for line in proc.stdout:
+            if line.startswith("RESULT "):
+                result = json.loads(line[len("RESULT "):])
+            else:
+                print(line, end="", flush=True)
+        if proc.wait() or result is None:
+            raise SystemExit(f"--old-commit {rev}: piece {k} of the old run failed "
+                             f"(exit {proc.returncode})")
+        seconds += result["seconds"]
+        rays += result["rays_per_s"] * result["seconds"]
+        points.append({**result["points"][0], "seconds": seconds})
+        yield
+    per_ray = result["samples_per_s"] / result["rays_per_s"]  # the old sampler's fixed count
+    return {**result, "points": points, "seconds": seconds, "rays_per_s": rays / seconds,
+            "samples_per_s": rays / seconds * per_ray, "psnr": points[-1]["psnr"],
+            "code": f"commit {sha.stdout.strip()[:12]}"}
+
+
+def run_all(gens: dict, interleave: bool) -> dict:
+    """Drive the runs' generators (`curve`, `old_code_curve`) to their results: one run
+    after the other, or with ``interleave`` piece by piece in turn, the order reversed every
+    round (old new new old old new ...), so that a drift of the machine's speed falls on
+    every run alike."""
+    res, live = {}, list(gens)
+    if not interleave:
+        for name in live:
+            try:
+                while True:
+                    next(gens[name])
+            except StopIteration as stop:
+                res[name] = stop.value
+        return res
+    while live:
+        for name in list(live):
+            try:
+                next(gens[name])
+            except StopIteration as stop:
+                res[name] = stop.value
+                live.remove(name)
+        live.reverse()
+    return {name: res[name] for name in gens}
 
 
 def plot(res: dict, path: Path, title: str) -> None:
@@ -183,6 +225,9 @@ def main() -> int:
                         "issue 13); the old config on today's code becomes \"old config\"")
     p.add_argument("--no-old-config", action="store_true",
                    help="with --old-commit: do not also train the old config on today's code")
+    p.add_argument("--interleave", action="store_true",
+                   help="train the runs piece by piece in turn instead of one after the other "
+                        "(a drift of the machine's speed then falls on all runs alike)")
     p.add_argument("--replot", nargs="+", default=None, metavar="CURVE_JSON[:LABEL]")
     args = p.parse_args()
     variants = []
@@ -215,15 +260,17 @@ def main() -> int:
         cfg, _ = preset_config("auto", args.data, args.downscale, device)
         cfg.update(extra, label)
         runs.append((label, cfg, None))
-    res = {}
+    gens = {}
     if args.old_commit and args.only in (None, "old"):
-        res["old"] = old_code_curve(args.old_commit, args)
+        gens["old"] = old_code_curve(args.old_commit, args)
     for name, cfg, only in runs:
         if args.only is None or only in (None, args.only):
-            res[name] = curve(name.replace(" ", "_"), cfg, args, test, device)
+            gens[name] = curve(name.replace(" ", "_"), cfg, args, test, device)
+    res = run_all(gens, args.interleave)
     meta = {"data": args.data, "downscale": args.downscale, "new_preset": preset,
             "old_commit": args.old_commit,
             "config_new": args.config_new, "variants": args.variant,
+            "interleave": args.interleave,
             "torch_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d")}
     (out / "curve.json").write_text(json.dumps({"meta": meta, "runs": res}, indent=2) + "\n")
     plot(res, out / "curve.png", f"{Path(args.data).name} 1/{args.downscale}, stage 1, "

@@ -11,6 +11,9 @@ on the CPU there: the toy preset (every ray sampled over its whole chord through
 32 + 16 samples, 1024 rays per step). Like `stage1_curve.curve`, the run is cut into
 ``--segments`` pieces (resume retraces the uninterrupted run) and each checkpoint is scored
 on the test views off the clock. Prints one JSON object: the run in `curve.json`'s form.
+``--segment K`` (0-based) trains and scores piece K alone (piece 0 replaces RUN, the others
+resume it) and prints that piece: what `stage1_curve.py --interleave` alternates with the new
+run's pieces.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ def main() -> int:
     p.add_argument("--out", required=True, help="the run directory (replaced)")
     p.add_argument("--iters", type=int, default=None, help="default: the toy preset's")
     p.add_argument("--segments", type=int, default=6)
+    p.add_argument("--segment", type=int, default=None, help="train piece K only (0-based)")
     a = p.parse_args()
     import shells
 
@@ -51,10 +55,12 @@ def main() -> int:
     iters = cfg.train.iters
     test = load_dataset(a.data, "test", downscale=a.downscale)
     run = Path(a.out)
-    shutil.rmtree(run, ignore_errors=True)
     cuts = sorted({max(1, round(iters * (k + 1) / a.segments)) for k in range(a.segments)})
+    pieces = list(enumerate(cuts)) if a.segment is None else [(a.segment, cuts[a.segment])]
+    if pieces[0][0] == 0:
+        shutil.rmtree(run, ignore_errors=True)
     points, seconds, rays = [], 0.0, 0.0
-    for i, k in enumerate(cuts):
+    for i, k in pieces:
         s = train(a.data, run, cfg, device, downscale=a.downscale, resume=i > 0,
                   progress=False, stop_at=k, evaluate_test=False)
         seconds += s["seconds"]
@@ -64,7 +70,7 @@ def main() -> int:
         with torch.no_grad():
             psnr = evaluate(field, test, rcfg.train, 0, device)["psnr"]
         points.append({"step": k, "seconds": seconds, "psnr": psnr})
-        print(f"old code: step {k}, {seconds:.0f} s trained, test PSNR {psnr:.2f} dB (scored in "
+        print(f"old code: step {k}, {s['seconds']:.0f} s trained, test PSNR {psnr:.2f} dB (scored in "
               f"{time.perf_counter() - t:.0f} s)", flush=True)
     per_ray = cfg.train.n_samples + cfg.train.n_importance  # every ray gets all of them
     out = {"iters": iters, "points": points, "seconds": seconds, "rays_per_s": rays / seconds,
