@@ -139,22 +139,15 @@ def run_all(gens: dict, interleave: bool) -> dict:
     round (old new new old old new ...), so that a drift of the machine's speed falls on
     every run alike."""
     res, live = {}, list(gens)
-    if not interleave:
-        for name in live:
-            try:
-                while True:
-                    next(gens[name])
-            except StopIteration as stop:
-                res[name] = stop.value
-        return res
     while live:
-        for name in list(live):
+        for name in (list(live) if interleave else live[:1]):
             try:
                 next(gens[name])
             except StopIteration as stop:
                 res[name] = stop.value
                 live.remove(name)
-        live.reverse()
+        if interleave:
+            live.reverse()
     return {name: res[name] for name in gens}
 
 

@@ -32,7 +32,8 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", required=True)
     p.add_argument("--downscale", type=int, default=8)
-    p.add_argument("--out", required=True, help="the run directory (replaced)")
+    p.add_argument("--out", required=True,
+                   help="the run directory (replaced; resumed by --segment K > 0)")
     p.add_argument("--iters", type=int, default=None, help="default: the toy preset's")
     p.add_argument("--segments", type=int, default=6)
     p.add_argument("--segment", type=int, default=None, help="train piece K only (0-based)")
@@ -70,8 +71,8 @@ def main() -> int:
         with torch.no_grad():
             psnr = evaluate(field, test, rcfg.train, 0, device)["psnr"]
         points.append({"step": k, "seconds": seconds, "psnr": psnr})
-        print(f"old code: step {k}, {s['seconds']:.0f} s trained, test PSNR {psnr:.2f} dB (scored in "
-              f"{time.perf_counter() - t:.0f} s)", flush=True)
+        print(f"old code: step {k}, {s['seconds']:.0f} s trained, test PSNR {psnr:.2f} dB "
+              f"(scored in {time.perf_counter() - t:.0f} s)", flush=True)
     per_ray = cfg.train.n_samples + cfg.train.n_importance  # every ray gets all of them
     out = {"iters": iters, "points": points, "seconds": seconds, "rays_per_s": rays / seconds,
            "samples_per_s": rays / seconds * per_ray, "psnr": points[-1]["psnr"],

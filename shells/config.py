@@ -489,8 +489,8 @@ def object_config(extent: float, focal_px: float, distance: float,
                                     log2_hashmap_size=min(21, 18 + doublings))
     # 2048 crossing rays per step at the base size (lego 1/8, one run: 4.60x the old code's
     # rays/s against 3.03x at 1024, 31.47 dB in 555 s against 30.96 in 413 s, about equal at
-    # equal time; a second run: 3.54x; trained interleaved with it: 4.19x); above it 1024, the setting measured there (lego 1/4:
-    # 6000 steps in 21.8 min, band 30.13 dB), 2048 not
+    # equal time; a second run: 3.54x; trained interleaved with it: 4.19x); above it 1024,
+    # the setting measured there (lego 1/4: 6000 steps in 16.7 min, band 30.45 dB), 2048 not
     cfg.train = dataclasses.replace(cfg.train, sampler="occupancy", iters=3000 * (1 + doublings),
                                     batch_rays=2048 if doublings == 0 else 1024,
                                     reg_points=2048, eikonal_weight=eikonal_weight,
