@@ -31,6 +31,9 @@ new, new, old, old, new, ...), one never beside another: a drift of the machine'
 during the invocation then falls on all runs alike instead of on whichever trained last.
 ``--replot A/curve.json[:LABEL] B/curve.json[:LABEL] ...`` trains nothing and draws the runs of
 earlier invocations in one plot and table (a run named again gets " (LABEL)" appended).
+An unbounded capture (fox; `shells.training.scene_similarity`) gets the contracted field and
+sampler of ``shells-train --scene auto`` in every run (`unbounded_settings`, applied after the
+config files, as the command does).
 """
 
 from __future__ import annotations
@@ -51,7 +54,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from shells.config import read_config_file, toy_config  # noqa: E402
 from shells.datasets import load_dataset  # noqa: E402
 from shells.run import RunDir, field_from_checkpoint, read_checkpoint  # noqa: E402
-from shells.training import evaluate, preset_config, stage1_grid, train  # noqa: E402
+from shells.training import (evaluate, preset_config, scene_similarity, stage1_grid,  # noqa: E402
+                             train, unbounded_settings)
 
 
 def score(run: Path, test, device: torch.device) -> float:
@@ -238,20 +242,30 @@ def main() -> int:
     if args.data is None:
         p.error("--data is required unless --replot is given")
     test = load_dataset(args.data, "test", downscale=args.downscale)
+    sim = scene_similarity(args.data)  # an unbounded capture (fox): as shells-train does
+
+    def preset(extra: dict | None, label: str):
+        cfg, name = preset_config("auto", args.data, args.downscale, device, sim)
+        if extra:
+            cfg.update(extra, label)
+        if sim is not None:
+            unbounded_settings(cfg, sim)
+        return cfg, name
+
     old = toy_config()
-    new, preset = preset_config("auto", args.data, args.downscale, device)
+    if sim is not None:
+        unbounded_settings(old, sim)
+    new, preset_name = preset(read_config_file(args.config_new) if args.config_new else None,
+                              str(args.config_new))
     for cfg, iters in ((old, args.iters_old), (new, args.iters_new)):
         if iters is not None:
             cfg.update({"train": {"iters": iters}}, "bench")
-    if args.config_new:
-        new.update(read_config_file(args.config_new), args.config_new)
     # (name, config, the --only value that trains it: None for the variants, which always do)
     runs = [("old config" if args.old_commit else "old", old, "old"), ("new", new, "new")]
     if args.old_commit and args.no_old_config:
         runs = runs[1:]
     for label, extra in variants:
-        cfg, _ = preset_config("auto", args.data, args.downscale, device)
-        cfg.update(extra, label)
+        cfg, _ = preset(extra, label)
         runs.append((label, cfg, None))
     gens = {}
     if args.old_commit and args.only in (None, "old"):
@@ -260,7 +274,8 @@ def main() -> int:
         if args.only is None or only in (None, args.only):
             gens[name] = curve(name.replace(" ", "_"), cfg, args, test, device)
     res = run_all(gens, args.interleave)
-    meta = {"data": args.data, "downscale": args.downscale, "new_preset": preset,
+    meta = {"data": args.data, "downscale": args.downscale, "new_preset": preset_name,
+            "unbounded": sim is not None,
             "old_commit": args.old_commit,
             "config_new": args.config_new, "variants": args.variant,
             "interleave": args.interleave,
