@@ -162,6 +162,37 @@ def test_ray_starting_inside_outer_shell(concentric):
     assert iv["t_inner"][0].item() == pytest.approx(0.25, abs=5e-4)
 
 
+def test_a_cast_from_a_start_distance_ignores_the_shells_before_it(two_spheres, concentric):
+    import mitsuba as mi
+
+    scene, a = two_spheres
+    o, d = z_rays([0.0, 0.0, 0.0, 0.0])  # axis hits: enter 2.5, exit 3.5, enter 4.0, exit 5.0
+    start = mi.Float([0.0, 3.7, 3.0, 4.5])  # before both / between / inside the first / second
+    iv = scene.intervals(o, d, dp_max=8, start=start).torch()
+    assert iv["count"].tolist() == [2, 1, 2, 1]
+    tol = 5e-4  # sagitta / cos 1 and float noise
+    np.testing.assert_allclose(iv["enter"][:, 0].numpy(), [2.5, 4.0, 3.0, 4.5], atol=tol)
+    np.testing.assert_allclose(iv["exit"][:, 0].numpy(), [3.5, 5.0, 3.5, 5.0], atol=tol)
+    np.testing.assert_allclose(iv["enter"][[0, 2], 1].numpy(), [4.0, 4.0], atol=tol)
+    # the peel budget counts the hits past the start only: one interval (two hits) from 3.7
+    one = scene.intervals(o[:1], d[:1], dp_max=2, start=mi.Float([3.7]))
+    assert int(one.count.torch()[0]) == 1
+    # the same with start 0 is the cast from the origin, bit for bit
+    full = scene.intervals(o, d, dp_max=8).torch()
+    zero = scene.intervals(o, d, dp_max=8, start=mi.Float([0.0] * 4)).torch()
+    for k in full:
+        assert torch.equal(full[k], zero[k]), k
+    t, _ = scene.first_hit(o, d, start)
+    np.testing.assert_allclose(t.numpy(), [2.5, 4.0, 3.5, 5.0], atol=tol)
+    # past M-: the solid before the start does not end the ray
+    inner_scene = concentric[0]
+    o1, d1 = z_rays([0.0])  # M+ [2, 4], M- [2.5, 3.5]
+    iv = inner_scene.intervals(o1, d1, dp_max=8, start=mi.Float([3.6])).torch()
+    assert iv["count"].tolist() == [1] and np.isinf(iv["t_inner"].numpy()).all()
+    np.testing.assert_allclose([iv["enter"][0, 0].item(), iv["exit"][0, 0].item()], [3.6, 4.0],
+                               atol=tol)
+
+
 def test_symbolic_and_evaluated_loops_agree(two_spheres):
     scene, _ = two_spheres
     g = torch.Generator().manual_seed(0)

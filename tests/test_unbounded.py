@@ -19,8 +19,9 @@ from shells.fields.drjit_field import DrJitField
 from shells.fields.network import ShellField
 from shells.levelset.extract import extract_shells
 from shells.levelset.unbounded import chord_deviation, to_world
-from shells.render.raycast import Intervals
-from shells.render.sampler import far_intervals, place_packed, place_padded
+from shells.render.raycast import Intervals, ShellScene
+from shells.render.sampler import (band_samples, far_intervals, place_packed, place_padded,
+                                   shell_intervals)
 from shells.render.volume import render_volume_rays
 from shells.render.warp import ray_span, s_of_t, t_of_s
 
@@ -158,6 +159,45 @@ def test_band_sampler_counts_a_far_interval_in_s_and_tiles_it_in_t():
     tp, dp, mask, _ = place_padded(iv, cfg, warp, o, d)
     np.testing.assert_allclose(tp[mask].numpy(), t, rtol=1e-6)
     np.testing.assert_allclose(dp[mask].numpy(), delta, rtol=1e-6)
+
+
+def test_band_rays_are_cast_from_t_near_past_solids_no_sampler_sees():
+    """A ray that misses the ball starts at its point nearest the centre (`ray_span`), as in
+    stage 1; a solid blob (M+ and M- of a sphere) the field holds between the camera and that
+    point must neither end the band ray there nor hide the shell behind it."""
+    import trimesh
+
+    mitsuba_variant()
+    c = np.asarray(CENTRE)
+    cam = c + np.array([-6.0 * RADIUS, 2.0 * RADIUS, 0.0])  # the ray passes 2 radii from c
+    d = np.array([1.0, 0.0, 0.0])
+    near = 6.0 * RADIUS  # t_near: the point nearest to c
+
+    def ball(r, at):
+        m = trimesh.creation.icosphere(subdivisions=3, radius=r)
+        m.apply_translation(at)
+        return m
+
+    blob = cam + 2.0 * RADIUS * d  # before t_near
+    wall = cam + 9.0 * RADIUS * d  # after it
+    outer = trimesh.util.concatenate([ball(0.4 * RADIUS, blob), ball(0.4 * RADIUS, wall)])
+    inner = trimesh.util.concatenate([ball(0.2 * RADIUS, blob), ball(0.2 * RADIUS, wall)])
+    scene = ShellScene((np.float32(outer.vertices), np.int32(outer.faces)),
+                       (np.float32(inner.vertices), np.int32(inner.faces)))
+    o = torch.tensor(cam[None], dtype=torch.float32)
+    dt = torch.tensor(d[None], dtype=torch.float32)
+    warp = (CENTRE, RADIUS, 1.95)
+    assert float(ray_span(o, dt, *warp[:2], 1.95)[0]) == pytest.approx(near, rel=1e-5)
+    iv = shell_intervals(scene, o, dt, 8, warp).torch()
+    assert iv["count"].tolist() == [1]  # the wall's band only
+    np.testing.assert_allclose([iv["enter"][0, 0].item(), iv["exit"][0, 0].item(),
+                                iv["t_inner"][0].item()],
+                               np.array([8.6, 8.8, 8.8]) * RADIUS, rtol=2e-3)
+    t, _, mask, solid = band_samples(scene, o, dt, RenderConfig(), warp)
+    assert bool(solid[0]) and (t[mask] > 8.5 * RADIUS).all()
+    # cast from the camera the blob ends the ray before t_near: no sample reaches the wall
+    t0, _, m0, _ = place_padded(scene.intervals(o, dt, 8), RenderConfig(), warp, o, dt)
+    assert not (t0[m0] > 8.5 * RADIUS).any()
 
 
 def test_every_sampler_reaches_the_far_background():

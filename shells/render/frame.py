@@ -33,7 +33,7 @@ from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.render.occupancy import render_occupancy
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
-from shells.render.sampler import far_intervals, field_warp, place_packed
+from shells.render.sampler import far_intervals, field_warp, place_packed, shell_intervals
 from shells.render.shading import WHITE, composite_packed, end_colour, shade_samples
 
 MODES = ("band", "full", "occupancy")
@@ -69,7 +69,7 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
     if mode == "band":
         if scene is None:
             raise InputError("band mode needs the shells: pass a ShellScene")
-        iv = scene.intervals(o, d, cfg.dp_max)
+        iv = shell_intervals(scene, o, d, cfg.dp_max, field_warp(field))
         return render_intervals(field, o, d, iv, cfg, background)[:2]
     if mode == "full":
         warp = field_warp(field)

@@ -8,6 +8,9 @@ renderer. Conventions:
   ``dot(d, si.n) < 0`` means the ray *enters* the shell.
 * Distances ``t`` are along the original ray, in world units, with unit directions.
 * A ray that starts inside M+ opens its first interval at t = 0 (its origin).
+* A cast may start at a per-ray distance ``start`` instead (an unbounded field's t_near,
+  `shells.render.sampler.shell_intervals`): the shells before it are not seen, an interval open there
+  opens at ``start``, and distances are still measured from the origin.
 * M- (inner shell) is solid: peeling stops at its first hit and an open interval is closed there.
 * At most ``dp_max`` M+ hits are peeled (depth-peeling budget); an interval still open when the
   budget runs out, or when the ray leaves the scene (a non-watertight M+), is dropped.
@@ -166,14 +169,16 @@ class ShellScene:
             params[f"{mesh.id()}.vertex_positions"] = mi.Float(V.ravel())
         params.update()
 
-    def first_hit(self, origins: Any, dirs: Any) -> tuple[Any, Any]:
+    def first_hit(self, origins: Any, dirs: Any, start: Any = None) -> tuple[Any, Any]:
         """Distance (inf: no hit) and unit geometric normal of each ray's first hit on either
-        shell: mi.Float [R], mi.Vector3f [R]."""
+        shell: mi.Float [R], mi.Vector3f [R]; with ``start`` (mi.Float [R]) the first hit past
+        that distance (the distance still from the origin)."""
         o = to_point3f(origins, mi.Point3f)
         d = to_point3f(dirs, mi.Vector3f)
-        si = self.scene.ray_intersect(mi.Ray3f(o, d), mi.RayFlags.Minimal, False)
+        o0 = o if start is None else o + start * d
+        si = self.scene.ray_intersect(mi.Ray3f(o0, d), mi.RayFlags.Minimal, False)
         valid = si.is_valid()
-        t = dr.select(valid, si.t, dr.inf)
+        t = dr.select(valid, si.t if start is None else si.t + start, dr.inf)
         n = dr.select(valid, si.n, 0.0)
         dr.eval(t, n)
         return t, n
@@ -182,8 +187,10 @@ class ShellScene:
                   dirs: Any,  # [R, 3] unit directions, torch/numpy, or mi.Vector3f
                   dp_max: int,  # at most this many M+ hits peeled per ray
                   mode: str = "symbolic",  # Dr.Jit loop mode: 'symbolic' or 'evaluated'
+                  start: Any = None,  # mi.Float [R]: each ray's cast starts at this distance
                   ) -> Intervals:
-        """Ordered M+ entry/exit intervals per ray, K = ceil(dp_max / 2) slots.
+        """Ordered M+ entry/exit intervals per ray, K = ceil(dp_max / 2) slots; with
+        ``start``, of the rays' parts beyond it (module docstring).
 
         Both loop modes give identical results (timings in the module docstring).
         """
@@ -195,8 +202,9 @@ class ShellScene:
         K = (dp_max + 1) // 2  # a ray starting inside M+ closes an interval on its first hit
         enter = dr.zeros(mi.Float, n * K)
         exit_ = dr.zeros(mi.Float, n * K)
+        o0, t0 = (o, mi.Float(0.0)) if start is None else (o + start * d, mi.Float(start))
         count, t_inner = _peel(self.scene, self._outer_ptr, o, d, enter, exit_,
-                               K, dp_max, mode)
+                               K, dp_max, mode, o0, t0)
         dr.eval(enter, exit_, count, t_inner)
         return Intervals(enter=mi.TensorXf(enter, (n, K)), exit=mi.TensorXf(exit_, (n, K)),
                          count=tensor_xi()(mi.Int(count), (n,)),
@@ -205,17 +213,18 @@ class ShellScene:
 
 @dr.syntax
 def _peel(scene: "mi.Scene", outer_ptr: Any, o: Any, d: Any, enter: Any, exit_: Any,
-          K: int, dp_max: int, mode: str) -> tuple[Any, Any]:
-    """Depth-peel the scene; scatter closed intervals into enter/exit [R * K] in place."""
+          K: int, dp_max: int, mode: str, o0: Any, t0: Any) -> tuple[Any, Any]:
+    """Depth-peel the scene from o0 = o + t0 d; scatter closed intervals (distances from o)
+    into enter/exit [R * K] in place."""
     n = dr.width(d)
     row = dr.arange(mi.UInt32, n) * K
-    ray = mi.Ray3f(o, d)
+    ray = mi.Ray3f(o0, d)
     active = mi.Bool(True)  # still peeling
     hits = mi.UInt32(0)  # M+ hits consumed so far (<= dp_max)
     count = mi.UInt32(0)  # closed intervals written for this ray
     inside = mi.Bool(False)  # an interval is open at t_open
     t_open = mi.Float(0.0)  # entry distance of the open interval
-    t_prev = mi.Float(0.0)  # distance of the previous M+ hit (0 = ray origin)
+    t_prev = mi.Float(t0)  # distance of the previous M+ hit (the cast's start before the first)
     t_inner = mi.Float(dr.inf)  # first M- hit
     while dr.hint(active, mode=mode, max_iterations=-1, label="shell_peel"):
         si = scene.ray_intersect(ray, mi.RayFlags.Minimal, False)

@@ -55,7 +55,8 @@ from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.render.frame import rays_per_batch, render_image, render_intervals
 from shells.render.raycast import Intervals, ShellScene, to_point3f
-from shells.render.sampler import interval_counts
+from shells.render.sampler import Warp, field_warp, interval_counts, shell_intervals
+from shells.render.warp import ray_span
 from shells.render.shading import WHITE
 
 BYTES_PER_PIXEL = 256  # cast features and results of one pixel while refining (upper estimate)
@@ -98,9 +99,10 @@ def render_refined(field: Any,
     S = 1 << L
     probe = (torch.arange(0, height, S)[:, None] * width
              + torch.arange(0, width, S)[None, :]).reshape(-1)
-    if not _hopeful(_cast(scene, o[probe], d[probe], cfg), cfg):
+    warp = field_warp(field)
+    if not _hopeful(_cast(scene, o[probe], d[probe], cfg, warp), cfg):
         return band()  # little to gain (judged on the coarse pixels): the band render as is
-    cast = _cast(scene, o, d, cfg)
+    cast = _cast(scene, o, d, cfg, warp)
     bg = torch.tensor(background, dtype=torch.float32)
     colour = bg.repeat(R, 1)
     opacity = torch.zeros(R)
@@ -165,11 +167,14 @@ def render_refined(field: Any,
 
 
 def _cast(scene: ShellScene, o: torch.Tensor, d: torch.Tensor,
-          cfg: RenderConfig) -> dict[str, torch.Tensor]:
+          cfg: RenderConfig, warp: Warp | None = None) -> dict[str, torch.Tensor]:
     """Step 1 of the module docstring: per-pixel torch tensors (zero-copy views of Dr.Jit
-    arrays, computed in one kernel)."""
-    iv = scene.intervals(o, d, cfg.dp_max)
-    t_hit, n_hit = scene.first_hit(o, d)
+    arrays, computed in one kernel). An unbounded field's rays (``warp``) are cast from t_near
+    (`shells.render.sampler.shell_intervals`)."""
+    iv = shell_intervals(scene, o, d, cfg.dp_max, warp)
+    start = None if warp is None else ray_span(to_point3f(o, mi.Point3f),
+                                               to_point3f(d, mi.Vector3f), *warp)[0]
+    t_hit, n_hit = scene.first_hit(o, d, start)
     R, K = iv.enter.shape
     slot = dr.arange(mi.UInt32, R * K)
     count = mi.UInt32(iv.count.array)

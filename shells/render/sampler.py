@@ -104,6 +104,21 @@ def field_warp(field: Any) -> Warp | None:
     return (tuple(sim.centre), float(sim.radius), float(field.far_radius))
 
 
+def shell_intervals(scene: ShellScene,
+                    o: Any, d: Any,  # [R, 3] torch / numpy, or Dr.Jit Point3f / Vector3f
+                    dp_max: int, warp: Warp | None = None) -> Intervals:
+    """The shell intervals band sampling starts from (`ShellScene.intervals`). An unbounded
+    field's rays (``warp``) are cast from their t_near (`ray_span`), where every sampler and
+    stage 1 start them: the shells of whatever the field holds before t_near, which no ray of
+    stage 1 sampled, neither end a ray there (an M- hit) nor use up its dp_max peels, so the
+    band sees what the full-ray render sees."""
+    if warp is None:
+        return scene.intervals(o, d, dp_max)
+    o, d = to_point3f(o, mi.Point3f), to_point3f(d, mi.Vector3f)
+    near, _, _ = ray_span(o, d, *warp)
+    return scene.intervals(o, d, dp_max, start=near)
+
+
 def _warped_ends(iv: Intervals, o: Any, d: Any, warp: Warp | None) -> tuple[Any, Any, Any]:
     """Interval ends [R * K] (in s when warped) and each ray's t_b [R] (None: not warped)."""
     enter, exit_ = iv.enter.array, iv.exit.array
@@ -223,4 +238,5 @@ def band_samples(scene: ShellScene,
     """Stage-2 training samples of rays cast against the shells: t [R, S], delta [R, S],
     mask [R, S] bool and solid [R] bool (`solid_end`), torch, no grad, on the device of the
     Mitsuba variant (the torch rays' device when the variant matches it)."""
-    return place_padded(scene.intervals(origins, dirs, cfg.dp_max), cfg, warp, origins, dirs)
+    iv = shell_intervals(scene, origins, dirs, cfg.dp_max, warp)
+    return place_padded(iv, cfg, warp, origins, dirs)
