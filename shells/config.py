@@ -470,7 +470,8 @@ def object_config(extent: float, focal_px: float, distance: float,
     as large per doubling from 2^18; 3000 steps per doubling. The Eikonal weight is 0.005, not
     the toy's 0.1: on lego at 1/4 the strong term held the hash grid back (1500 steps: 23.18 dB
     at 0.1, 25.6 at 0.02, 26.2 at 0.005), and the shells of the looser SDF still bound it (band
-    >= full ray); unbounded captures pass 0.1 (`shells.training.preset_config`). Training pixels
+    >= full ray); unbounded captures pass 0.1 and also take the ray slope and the free-space
+    term (`shells.training.preset_config`). Training pixels
     of RGBA data go on random backgrounds (``random_background``; no effect without alpha): on
     white alone, lego's field kept an unseen white solid under its base plate that the shells
     had to enclose (1/8: band 4.65 samples/px; on random backgrounds 2.05, and 0.2 dB higher).

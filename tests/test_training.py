@@ -236,6 +236,10 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     sim = Similarity(centre=(0.0, 0.0, 0.0), radius=1.0)
     assert preset_config("object", big, 1, cpu, sim=sim)[0].train.eikonal_weight == 0.1
     assert preset_config("object", big, 1, cpu, sim=sim)[0].train.cull_weight == 0.0
+    # and the ray slope with the free-space term (fox); a bounded object keeps the paper's
+    unb = preset_config("object", big, 1, cpu, sim=sim)[0].train
+    assert (unb.slope, unb.free_weight) == ("ray", 0.1)
+    assert (cfg.train.slope, cfg.train.free_weight) == ("normal", 0.0)
     assert preset_config("paper", big, 1, cpu)[1] == "paper"
     # RGBA objects train on random backgrounds; the toy and paper presets on the data's colour
     assert cfg.train.random_background and half.train.random_background
