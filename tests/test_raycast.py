@@ -165,7 +165,7 @@ def test_ray_starting_inside_outer_shell(concentric):
 def test_a_cast_from_a_start_distance_ignores_the_shells_before_it(two_spheres, concentric):
     import mitsuba as mi
 
-    scene, a = two_spheres
+    scene, _ = two_spheres
     o, d = z_rays([0.0, 0.0, 0.0, 0.0])  # axis hits: enter 2.5, exit 3.5, enter 4.0, exit 5.0
     start = mi.Float([0.0, 3.7, 3.0, 4.5])  # before both / between / inside the first / second
     iv = scene.intervals(o, d, dp_max=8, start=start).torch()

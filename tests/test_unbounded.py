@@ -187,7 +187,7 @@ def test_band_rays_are_cast_from_t_near_past_solids_no_sampler_sees():
     o = torch.tensor(cam[None], dtype=torch.float32)
     dt = torch.tensor(d[None], dtype=torch.float32)
     warp = (CENTRE, RADIUS, 1.95)
-    assert float(ray_span(o, dt, *warp[:2], 1.95)[0]) == pytest.approx(near, rel=1e-5)
+    assert float(ray_span(o, dt, *warp)[0]) == pytest.approx(near, rel=1e-5)
     iv = shell_intervals(scene, o, dt, 8, warp).torch()
     assert iv["count"].tolist() == [1]  # the wall's band only
     np.testing.assert_allclose([iv["enter"][0, 0].item(), iv["exit"][0, 0].item(),

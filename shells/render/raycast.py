@@ -9,8 +9,8 @@ renderer. Conventions:
 * Distances ``t`` are along the original ray, in world units, with unit directions.
 * A ray that starts inside M+ opens its first interval at t = 0 (its origin).
 * A cast may start at a per-ray distance ``start`` instead (an unbounded field's t_near,
-  `shells.render.sampler.shell_intervals`): the shells before it are not seen, an interval open there
-  opens at ``start``, and distances are still measured from the origin.
+  `shells.render.sampler.shell_intervals`): the shells before it are not seen, an interval
+  open there opens at ``start``, and distances are still measured from the origin.
 * M- (inner shell) is solid: peeling stops at its first hit and an open interval is closed there.
 * At most ``dp_max`` M+ hits are peeled (depth-peeling budget); an interval still open when the
   budget runs out, or when the ray leaves the scene (a non-watertight M+), is dropped.

@@ -55,8 +55,7 @@ from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.render.frame import rays_per_batch, render_image, render_intervals
 from shells.render.raycast import Intervals, ShellScene, to_point3f
-from shells.render.sampler import Warp, field_warp, interval_counts, shell_intervals
-from shells.render.warp import ray_span
+from shells.render.sampler import Warp, cast_start, field_warp, interval_counts
 from shells.render.shading import WHITE
 
 BYTES_PER_PIXEL = 256  # cast features and results of one pixel while refining (upper estimate)
@@ -171,9 +170,8 @@ def _cast(scene: ShellScene, o: torch.Tensor, d: torch.Tensor,
     """Step 1 of the module docstring: per-pixel torch tensors (zero-copy views of Dr.Jit
     arrays, computed in one kernel). An unbounded field's rays (``warp``) are cast from t_near
     (`shells.render.sampler.shell_intervals`)."""
-    iv = shell_intervals(scene, o, d, cfg.dp_max, warp)
-    start = None if warp is None else ray_span(to_point3f(o, mi.Point3f),
-                                               to_point3f(d, mi.Vector3f), *warp)[0]
+    start = cast_start(o, d, warp)
+    iv = scene.intervals(o, d, cfg.dp_max, start=start)
     t_hit, n_hit = scene.first_hit(o, d, start)
     R, K = iv.enter.shape
     slot = dr.arange(mi.UInt32, R * K)

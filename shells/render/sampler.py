@@ -112,11 +112,15 @@ def shell_intervals(scene: ShellScene,
     stage 1 start them: the shells of whatever the field holds before t_near, which no ray of
     stage 1 sampled, neither end a ray there (an M- hit) nor use up its dp_max peels, so the
     band sees what the full-ray render sees."""
+    return scene.intervals(o, d, dp_max, start=cast_start(o, d, warp))
+
+
+def cast_start(o: Any, d: Any, warp: Warp | None) -> Any:
+    """Where the shell cast of each ray starts (`shell_intervals`): t_near (`ray_span`,
+    mi.Float [R]) for an unbounded field, None (the origin) for a bounded one."""
     if warp is None:
-        return scene.intervals(o, d, dp_max)
-    o, d = to_point3f(o, mi.Point3f), to_point3f(d, mi.Vector3f)
-    near, _, _ = ray_span(o, d, *warp)
-    return scene.intervals(o, d, dp_max, start=near)
+        return None
+    return ray_span(to_point3f(o, mi.Point3f), to_point3f(d, mi.Vector3f), *warp)[0]
 
 
 def _warped_ends(iv: Intervals, o: Any, d: Any, warp: Warp | None) -> tuple[Any, Any, Any]:
