@@ -61,6 +61,9 @@ class FieldConfig:
     radius: float = 1.0  # its radius (world units)
     far_radius: float = 1.95  # contracted radius (in radius units, in (1, 2)) beyond which
     # everything is solid: the far background every ray ends on (1.95: 20 radii away)
+    near_radius: float = 1.0  # contracted radius (in radius units, in [1, far_radius)) of the
+    # sphere where rays start (shells.render.warp.ray_span): 1 = the ball of interest, a ray
+    # that misses it starting at its point nearest the centre; 1.5 = a sphere of 2 radii
 
 
 @dataclass
@@ -355,6 +358,9 @@ _RULES = [_rule(k, *r) for k, r in [
     ("field.radius", _positive()),
     ("field.far_radius", ((lambda v: 1.0 < v < 2.0), "must be in (1, 2) (contracted space "
                           "ends at 2)")),
+    ("field.near_radius", (lambda v, c: 1.0 <= v < c.field.far_radius,
+                           "must be in [1, field.far_radius) (rays start inside the far "
+                           "solid)")),
     ("field.centre", ((lambda v: isinstance(v, tuple) and len(v) == 3
                        and all(isinstance(c, (int, float)) and math.isfinite(c) for c in v)),
                       "expected three finite numbers (x, y, z)")),

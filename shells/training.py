@@ -110,13 +110,34 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
         # best band after stage 2, 22.20 dB against 22.15 full ray (the slope alone, 8000
         # steps: 22.01 against 23.03; with the paper's opacity stage 1 stalled near 15 dB;
         # BENCHMARKS.md, eighteenth and fifteenth sessions)
-        cfg.update({"train": {"slope": "ray", "free_weight": 0.1}}, "object preset, unbounded")
+        cfg.update({"train": {"slope": "ray", "free_weight": 0.1},
+                    "field": {"near_radius": start_sphere(cams.c2w[:, :3, 3], sim)}},
+                   "object preset, unbounded")
         return cfg, "object"
     box = frames.aabb.double()
     centre = 0.5 * (box[0] + box[1])
     distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
     focal = float(cams.fx.double().median())
     return object_config(float((box[1] - box[0]).max()), focal, distance), "object"
+
+
+START_RADII = 2.0  # the unbounded object preset's rays start this many radii from the centre
+CAMERA_SHARE = 0.8  # ... or at this share of the nearest training camera's distance, if less
+
+
+def start_sphere(origins: torch.Tensor,  # [N, 3] training camera centres (world)
+                 sim: Similarity) -> float:
+    """``field.near_radius`` of the unbounded object preset: rays start where they enter the
+    sphere of START_RADII radii around the centre (`shells.render.warp.ray_span`), or of
+    CAMERA_SHARE of the nearest camera's distance when a camera is closer (no ray starts at a
+    camera: no room for floaters in front of it), never inside the ball of interest; returned
+    as a contracted radius. Starting at the ball of interest, a ray that misses it starts at
+    its point nearest the centre, past the wall beside the object that fox's oblique views
+    see; on fox 1/8 the start sphere of 2 radii gave BENCHMARKS.md, nineteenth session."""
+    centre = torch.tensor(sim.centre, dtype=torch.float64)
+    nearest = float((origins.double() - centre).norm(dim=-1).min()) / sim.radius
+    rho = min(START_RADII, max(1.0, CAMERA_SHARE * nearest))
+    return 2.0 - 1.0 / rho
 
 
 def _toy_for(sim: Similarity | None) -> Config:

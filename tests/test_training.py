@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -240,6 +241,15 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     unb = preset_config("object", big, 1, cpu, sim=sim)[0].train
     assert (unb.slope, unb.free_weight) == ("ray", 0.1)
     assert (cfg.train.slope, cfg.train.free_weight) == ("normal", 0.0)
+    # rays start 2 radii from the centre (contracted 1.5), or at 0.8 of the nearest camera's
+    # distance (3.105 here) when that is less, never inside the ball (contracted 1)
+    near = {r: preset_config("object", big, 1, cpu,
+                             sim=Similarity(centre=(0.0, 0.0, 0.0), radius=r))[0].field.near_radius
+            for r in (1.0, 2.0, 4.0)}
+    assert near[1.0] == pytest.approx(1.5)
+    assert near[2.0] == pytest.approx(2.0 - 1.0 / (0.8 * math.hypot(3.0, 0.8) / 2.0))
+    assert near[4.0] == 1.0
+    assert preset_config("toy", big, 1, cpu, sim=sim)[0].field.near_radius == 1.0
     assert preset_config("paper", big, 1, cpu)[1] == "paper"
     # RGBA objects train on random backgrounds; the toy and paper presets on the data's colour
     assert cfg.train.random_background and half.train.random_background
@@ -348,6 +358,8 @@ def test_config_ranges_are_checked_when_loaded(tmp_path, capsys):
              ({"shell": {"resolution": 4}}, "shell.resolution", ">= 8"),
              ({"data": {"background": [1, 1]}}, "data.background", "three values"),
              ({"field": {"min_kernel": 0.2}}, "field.init_kernel", "min_kernel"),
+             ({"field": {"near_radius": 0.9}}, "field.near_radius", "far_radius"),
+             ({"field": {"near_radius": 1.95}}, "field.near_radius", "far_radius"),
              ({"render": {"variant": 5}}, "render.variant", "str or null")]
     for data, key, why in cases:
         cfg = Config()

@@ -20,8 +20,8 @@ from shells.fields.network import ShellField
 from shells.levelset.extract import extract_shells
 from shells.levelset.unbounded import chord_deviation, to_world
 from shells.render.raycast import Intervals, ShellScene
-from shells.render.sampler import (band_samples, far_intervals, place_packed, place_padded,
-                                   shell_intervals)
+from shells.render.sampler import (band_samples, cast_start, far_intervals, field_warp,
+                                   place_packed, place_padded, shell_intervals)
 from shells.render.volume import render_volume_rays
 from shells.render.warp import ray_span, s_of_t, t_of_s
 
@@ -198,6 +198,47 @@ def test_band_rays_are_cast_from_t_near_past_solids_no_sampler_sees():
     # cast from the camera the blob ends the ray before t_near: no sample reaches the wall
     t0, _, m0, _ = place_padded(scene.intervals(o, dt, 8), RenderConfig(), warp, o, dt)
     assert not (t0[m0] > 8.5 * RADIUS).any()
+
+
+def test_rays_start_where_they_enter_the_start_sphere():
+    """``field.near_radius``: each ray starts where it enters the sphere of contracted radius
+    near_radius (world radius 1 / (2 - near_radius) radii), from the camera when the camera is
+    inside it, at its point nearest the centre when it misses it; t_b and t_far do not change.
+    Hand-worked with a start sphere of 3 radii (near_radius 5/3), rays along +x, torch and
+    Dr.Jit alike; with near_radius 1 the old rule (the ball of interest)."""
+    mitsuba_variant()
+    c = torch.tensor(CENTRE)
+    # offsets from the centre in radii: passes 2 radii from it (misses the ball), passes half
+    # a radius from it (enters the ball), starts inside the start sphere, passes 3.5 radii
+    # from it (misses both spheres)
+    off = torch.tensor([[-6.0, 2.0, 0.0], [-6.0, 0.5, 0.0], [-2.0, 1.0, 0.0], [-6.0, 3.5, 0.0]])
+    o = c + RADIUS * off
+    d = torch.tensor([[1.0, 0.0, 0.0]]).expand(4, 3)
+    po = mi.Point3f(*[mi.Float(o[:, i].contiguous()) for i in range(3)])
+    pd = mi.Vector3f(*[mi.Float(d[:, i].contiguous()) for i in range(3)])
+    old = [t / RADIUS for t in ray_span(o, d, CENTRE, RADIUS, 1.95)]
+    new = [t / RADIUS for t in ray_span(o, d, CENTRE, RADIUS, 1.95, 5.0 / 3.0)]
+    ball_in = 6.0 - math.sqrt(0.75)  # enters the unit ball at 6 - sqrt(1 - 0.5^2)
+    np.testing.assert_allclose(old[0].numpy(), [6.0, ball_in, 2.0, 6.0], rtol=1e-5)
+    np.testing.assert_allclose(new[0].numpy(),
+                               [6.0 - math.sqrt(5.0), 6.0 - math.sqrt(8.75), 0.0, 6.0],
+                               rtol=1e-5)
+    for a, b in zip(old[1:], new[1:]):  # t_b, t_far unchanged
+        torch.testing.assert_close(a, b)
+    assert (new[0] <= new[1]).all()  # t_near <= t_b: s = t there
+    dj = ray_span(po, pd, CENTRE, RADIUS, 1.95, 5.0 / 3.0)
+    for a, b in zip(new, dj):
+        np.testing.assert_allclose(b.numpy() / RADIUS, a.numpy(), rtol=1e-5, atol=1e-6)
+    # stage 1 and the shell cast start there too (the field's setting)
+    f = _field(randomise=False)
+    f.cfg = dataclasses.replace(f.cfg, near_radius=5.0 / 3.0)
+    with torch.no_grad():
+        out = render_volume_rays(f, o, d, 8, 0, torch.ones(3))
+    first = (out["t"][:, 0] / RADIUS).numpy()  # stratified: half a stratum past the start
+    assert (first >= new[0].numpy() - 1e-5).all() and (first < old[0].numpy()).any()
+    assert field_warp(f) == (CENTRE, RADIUS, 1.95, 5.0 / 3.0)
+    np.testing.assert_allclose(cast_start(o, d, field_warp(f)).numpy() / RADIUS,
+                               new[0].numpy(), rtol=1e-5, atol=1e-6)
 
 
 def test_every_sampler_reaches_the_far_background():

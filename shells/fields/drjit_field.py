@@ -75,6 +75,7 @@ class DrJitField:
         self._ball = (None if field.similarity is None else
                       (field.similarity.centre, float(field.similarity.radius)))
         self.far_radius = float(field.cfg.far_radius)
+        self.near_radius = float(field.cfg.near_radius)
         self.dome_logit = float(field.dome_logit)
         self.aabb = aabb  # field-space box [2, 3]
 

@@ -170,6 +170,10 @@ class ShellField(nn.Module):
     def far_radius(self) -> float:
         return float(self.cfg.far_radius)
 
+    @property
+    def near_radius(self) -> float:  # where rays start (shells.render.warp.ray_span)
+        return float(self.cfg.near_radius)
+
     def _contract(self, x: torch.Tensor  # [N, 3] world, unbounded field
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """z = W(x) [N, 3] (x itself inside the ball), u = (x - centre) / radius, |u| [N, 1]."""

@@ -93,7 +93,7 @@ def _per_interval_counts(iv: Intervals, enter: Any, exit_: Any,  # [R * K] (in s
     return n, per_ray
 
 
-Warp = tuple  # (centre, radius, far_radius) of an unbounded field, see `field_warp`
+Warp = tuple  # (centre, radius, far_radius, near_radius) of an unbounded field: `field_warp`
 
 
 def field_warp(field: Any) -> Warp | None:
@@ -101,7 +101,8 @@ def field_warp(field: Any) -> Warp | None:
     sim = getattr(field, "similarity", None)
     if sim is None:
         return None
-    return (tuple(sim.centre), float(sim.radius), float(field.far_radius))
+    return (tuple(sim.centre), float(sim.radius), float(field.far_radius),
+            float(field.near_radius))
 
 
 def shell_intervals(scene: ShellScene,

@@ -222,7 +222,7 @@ def render_volume_rays(field: torch.nn.Module,
     sim = getattr(field, "similarity", None)
     if sim is not None and span is None:  # u = s: even in contracted space
         t_near, tb, t_far = ray_span(origins, dirs, sim.centre, sim.radius,
-                                     field.cfg.far_radius)
+                                     field.cfg.far_radius, field.cfg.near_radius)
         near, far = t_near, s_of_t(t_far, tb)  # t_near <= t_b: s = t there
         hit = torch.ones_like(tb, dtype=torch.bool)
         def to_t(u: torch.Tensor) -> torch.Tensor:

@@ -16,10 +16,10 @@ in s (stage-1 stratified + importance samples, band intervals under Procedure 3,
 occupancy-grid march, the full-ray baseline), and a sample's section [s - a, s + b] becomes
 the world section [t(s - a), t(s + b)] (so sections that tile an interval in s tile it in t).
 
-Rays start at t_near (`ray_span`) and end at t_far = R (|o_unit| + 1 / (2 - rho_end)),
-rho_end = (far_radius + 2) / 2: the point there is past the contracted radius rho_end, beyond
-the solid far sphere of the field (`ShellField`, cfg.far_radius), so every ray's samples
-reach the far background.
+Rays start at t_near (`ray_span`: where they enter the start sphere, by default the ball of
+interest) and end at t_far = R (|o_unit| + 1 / (2 - rho_end)), rho_end = (far_radius + 2) / 2:
+the point there is past the contracted radius rho_end, beyond the solid far sphere of the field
+(`ShellField`, cfg.far_radius), so every ray's samples reach the far background.
 
 The functions take torch tensors (stage 1) or Dr.Jit arrays (the renderers) and use the
 matching math; shapes broadcast as the caller arranges them.
@@ -60,18 +60,30 @@ def _rho_end(far_radius: float) -> float:
     return 0.5 * (far_radius + 2.0)
 
 
+def start_radius(near_radius: float) -> float:
+    """World radius, in radius units, of the sphere where rays start (``near_radius``, the
+    contracted radius of `ray_span`): the inverse contraction 1 / (2 - rho)."""
+    return 1.0 / (2.0 - near_radius)
+
+
 def ray_span(o: Any, d: Any,  # [R, 3] torch, or Dr.Jit Point3f / Vector3f [R]
              centre: tuple[float, float, float], radius: float, far_radius: float,
+             near_radius: float = 1.0,
              ) -> tuple[Any, Any, Any]:  # t_near [R], t_b [R], t_far [R], world distances
     """Each ray's first distance t_near, its t_b (where s stops being t) and its last
     distance t_far.
 
-    t_near is where the ray enters the ball of interest (0 from a camera inside it), or, for
-    a ray that misses the ball, its point nearest to the centre: as a bounded scene's rays
-    start at its box, nothing is sampled between an inward-looking camera and the region it
-    looks at (a design choice for inward-facing captures; it gives the field no room for
-    floaters in front of the cameras). Every sampler starts there."""
+    t_near is where the ray enters the start sphere, of contracted radius ``near_radius``
+    (`FieldConfig.near_radius`; world radius `start_radius`), 0 from a camera inside it; a
+    ray that misses the sphere starts at its point nearest to the centre. With the default
+    1 the start sphere is the ball of interest: as a bounded scene's rays start at its box,
+    nothing is sampled between an inward-looking camera and the region it looks at (no room
+    for floaters in front of the cameras), but content outside the ball that lies before a
+    ray's nearest point to the centre (a wall beside the object, seen obliquely) is then
+    never sampled by that ray. A larger sphere samples it. Every sampler starts at t_near,
+    and t_near <= t_b (s = t there)."""
     reach = 1.0 / (2.0 - _rho_end(far_radius))
+    r_start = start_radius(near_radius)
     if _torch(o):
         ou = (o - o.new_tensor(centre)) / radius
         b = (ou * d).sum(-1)
@@ -80,6 +92,10 @@ def ray_span(o: Any, d: Any,  # [R, 3] torch, or Dr.Jit Point3f / Vector3f [R]
         root = disc.clamp_min(0.0).sqrt()
         near = torch.where(disc > 0, -b - root, -b).clamp_min(0.0)
         tb = (-b + root).clamp_min(1.0)
+        if r_start > 1.0:
+            disc_s = b * b - (c2 - r_start * r_start)
+            entry = (-b - disc_s.clamp_min(0.0).sqrt()).clamp_min(0.0)
+            near = torch.where(disc_s > 0, torch.minimum(near, entry), near)
         return radius * near, radius * tb, radius * (c2.sqrt() + reach)
     import drjit as dr
     import mitsuba as mi
@@ -90,6 +106,10 @@ def ray_span(o: Any, d: Any,  # [R, 3] torch, or Dr.Jit Point3f / Vector3f [R]
     root = dr.sqrt(dr.maximum(disc, 0.0))
     near = dr.maximum(dr.select(disc > 0, -b - root, -b), 0.0)
     tb = dr.maximum(-b + root, 1.0)
+    if r_start > 1.0:
+        disc_s = b * b - (c2 - r_start * r_start)
+        entry = dr.maximum(-b - dr.sqrt(dr.maximum(disc_s, 0.0)), 0.0)
+        near = dr.select(disc_s > 0, dr.minimum(near, entry), near)
     return radius * near, radius * tb, radius * (dr.sqrt(c2) + reach)
 
 
