@@ -107,11 +107,13 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
         cfg = object_config(4.0 * sim.radius, float(cams.fx.double().median()), distance,
                             eikonal_weight=TrainConfig.eikonal_weight, cull_weight=0.0)
         # the opacity's slope from the ray's samples and the free-space term: on fox 1/8 the
-        # best band after stage 2, 22.20 dB against 22.15 full ray (the slope alone, 8000
-        # steps: 22.01 against 23.03; with the paper's opacity stage 1 stalled near 15 dB;
-        # BENCHMARKS.md, eighteenth and fifteenth sessions)
+        # best band after stage 2 when rays started at the ball, 22.20 dB against 22.15 full
+        # ray (the slope alone, 8000 steps: 22.01 against 23.03; with the paper's opacity
+        # stage 1 stalled near 15 dB; BENCHMARKS.md, eighteenth and fifteenth sessions);
+        # rays start on the start sphere (`start_sphere`: 25.29 band, 29.04 full ray)
         cfg.update({"train": {"slope": "ray", "free_weight": 0.1},
-                    "field": {"near_radius": start_sphere(cams.c2w[:, :3, 3], sim)}},
+                    "field": {"near_radius": start_sphere(cams.c2w[:, :3, 3], sim)},
+                    "shell": UNBOUNDED_SHELLS, "render": {"dp_max": 32}},
                    "object preset, unbounded")
         return cfg, "object"
     box = frames.aabb.double()
@@ -121,6 +123,13 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
     return object_config(float((box[1] - box[0]).max()), focal, distance), "object"
 
 
+# the unbounded object preset's shells: wide, for a soft field (fox 1/8: 67 % of the full-ray
+# weight at s > 0.03, 28 % at f < -0.1 and 14 % at f > 0.1, where the bounded caps,
+# dilate_zeta 0.25 and erode_zeta 0.1, cut it), with the 32 peels their layers need (render
+# dp_max): band after stage 2 25.29 -> 28.07 dB at 22.6 samples/px, full ray 29.04;
+# extraction 545 s instead of 101 (BENCHMARKS.md, nineteenth session)
+UNBOUNDED_SHELLS = {"beta_d": 1.0, "dilate_zeta": 1.0, "beta_e": 1.0, "erode_zeta": 0.5,
+                    "v_max": 0.1}
 START_RADII = 2.0  # the unbounded object preset's rays start this many radii from the centre
 CAMERA_SHARE = 0.8  # ... or at this share of the nearest training camera's distance, if less
 
@@ -131,9 +140,10 @@ def start_sphere(origins: torch.Tensor,  # [N, 3] training camera centres (world
     sphere of START_RADII radii around the centre (`shells.render.warp.ray_span`), or of
     CAMERA_SHARE of the nearest camera's distance when a camera is closer (no ray starts at a
     camera: no room for floaters in front of it), never inside the ball of interest; returned
-    as a contracted radius. Starting at the ball of interest, a ray that misses it starts at
-    its point nearest the centre, past the wall beside the object that fox's oblique views
-    see; on fox 1/8 the start sphere of 2 radii gave BENCHMARKS.md, nineteenth session."""
+    as a contracted radius. Started at the ball of interest, a ray that misses it began at its
+    point nearest the centre, past the wall beside the object in fox's oblique views; with
+    the start sphere of 2 radii fox 1/8 went from 22.15 to 29.04 dB full ray and from 22.20 to
+    25.29 dB band after stage 2 (BENCHMARKS.md, nineteenth session)."""
     centre = torch.tensor(sim.centre, dtype=torch.float64)
     nearest = float((origins.double() - centre).norm(dim=-1).min()) / sim.radius
     rho = min(START_RADII, max(1.0, CAMERA_SHARE * nearest))

@@ -250,6 +250,12 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     assert near[2.0] == pytest.approx(2.0 - 1.0 / (0.8 * math.hypot(3.0, 0.8) / 2.0))
     assert near[4.0] == 1.0
     assert preset_config("toy", big, 1, cpu, sim=sim)[0].field.near_radius == 1.0
+    # wide shells and 32 peels for an unbounded capture; a bounded object keeps the object
+    # preset's caps
+    unb_cfg = preset_config("object", big, 1, cpu, sim=sim)[0]
+    assert (unb_cfg.shell.dilate_zeta, unb_cfg.shell.erode_zeta, unb_cfg.render.dp_max) == \
+        (1.0, 0.5, 32)
+    assert (cfg.shell.dilate_zeta, cfg.shell.erode_zeta, cfg.render.dp_max) == (0.25, 0.1, 8)
     assert preset_config("paper", big, 1, cpu)[1] == "paper"
     # RGBA objects train on random backgrounds; the toy and paper presets on the data's colour
     assert cfg.train.random_background and half.train.random_background
