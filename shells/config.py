@@ -359,8 +359,8 @@ _RULES = [_rule(k, *r) for k, r in [
     ("field.far_radius", ((lambda v: 1.0 < v < 2.0), "must be in (1, 2) (contracted space "
                           "ends at 2)")),
     ("field.near_radius", (lambda v, c: 1.0 <= v < c.field.far_radius,
-                           "must be in [1, field.far_radius) (rays start inside the far "
-                           "solid)")),
+                           "must be in [1, field.far_radius) (1: the ball of interest; "
+                           "rays must start before the far solid)")),
     ("field.centre", ((lambda v: isinstance(v, tuple) and len(v) == 3
                        and all(isinstance(c, (int, float)) and math.isfinite(c) for c in v)),
                       "expected three finite numbers (x, y, z)")),
