@@ -88,28 +88,20 @@ def ray_span(o: Any, d: Any,  # [R, 3] torch, or Dr.Jit Point3f / Vector3f [R]
         ou = (o - o.new_tensor(centre)) / radius
         b = (ou * d).sum(-1)
         c2 = (ou * ou).sum(-1)
-        disc = b * b - (c2 - 1.0)
-        root = disc.clamp_min(0.0).sqrt()
-        near = torch.where(disc > 0, -b - root, -b).clamp_min(0.0)
-        tb = (-b + root).clamp_min(1.0)
-        if r_start > 1.0:
-            disc_s = b * b - (c2 - r_start * r_start)
-            entry = (-b - disc_s.clamp_min(0.0).sqrt()).clamp_min(0.0)
-            near = torch.where(disc_s > 0, torch.minimum(near, entry), near)
+        disc = b * b - (c2 - 1.0)  # the ball of interest: its exit is t_b
+        tb = (-b + disc.clamp_min(0.0).sqrt()).clamp_min(1.0)
+        disc_s = disc if r_start == 1.0 else b * b - (c2 - r_start * r_start)  # start sphere
+        near = torch.where(disc_s > 0, -b - disc_s.clamp_min(0.0).sqrt(), -b).clamp_min(0.0)
         return radius * near, radius * tb, radius * (c2.sqrt() + reach)
     import drjit as dr
     import mitsuba as mi
     ou = (o - mi.Point3f(*centre)) / radius
     b = dr.dot(ou, d)
     c2 = dr.squared_norm(ou)
-    disc = b * b - (c2 - 1.0)
-    root = dr.sqrt(dr.maximum(disc, 0.0))
-    near = dr.maximum(dr.select(disc > 0, -b - root, -b), 0.0)
-    tb = dr.maximum(-b + root, 1.0)
-    if r_start > 1.0:
-        disc_s = b * b - (c2 - r_start * r_start)
-        entry = dr.maximum(-b - dr.sqrt(dr.maximum(disc_s, 0.0)), 0.0)
-        near = dr.select(disc_s > 0, dr.minimum(near, entry), near)
+    disc = b * b - (c2 - 1.0)  # the ball of interest: its exit is t_b
+    tb = dr.maximum(-b + dr.sqrt(dr.maximum(disc, 0.0)), 1.0)
+    disc_s = disc if r_start == 1.0 else b * b - (c2 - r_start * r_start)  # start sphere
+    near = dr.maximum(dr.select(disc_s > 0, -b - dr.sqrt(dr.maximum(disc_s, 0.0)), -b), 0.0)
     return radius * near, radius * tb, radius * (dr.sqrt(c2) + reach)
 
 
