@@ -12,6 +12,11 @@ leaving there); f > 0 farther. The weight off the level set is what the occupanc
 the band renderer cannot see. Prints the three shares as JSON; for an unbounded field also
 each class's share inside the ball of interest (|u| <= 1, the object) and outside it (the
 contracted room), as ``share_ball`` and ``share_outside`` (of the whole weight).
+
+On a soft field (large s) "near the level set" covers most of space and says little about
+what shells with capped falloffs cut; ``by_s`` and ``by_f`` split the weight by the kernel size
+s and by f at the sample (bin edges S_EDGES, F_EDGES), which shows where the weight lies
+against the shells' `dilate_zeta` / `erode_zeta`.
 """
 
 from __future__ import annotations
@@ -30,6 +35,21 @@ from shells.run import RunDir, field_from_checkpoint, read_checkpoint, read_run 
 from shells.render.volume import render_volume_rays  # noqa: E402
 
 from report import emit_json  # noqa: E402
+
+
+S_EDGES = (0.0, 0.003, 0.01, 0.03, 0.1, 0.3, float("inf"))  # kernel size s (field units)
+F_EDGES = (-float("inf"), -0.25, -0.1, -0.03, 0.0, 0.03, 0.1, 0.25, float("inf"))  # f
+
+
+def _binned(w: torch.Tensor, x: torch.Tensor, edges: tuple[float, ...]) -> torch.Tensor:
+    """Sum of the weights w whose x falls in each [edges[i], edges[i + 1])."""
+    idx = torch.bucketize(x.contiguous(), torch.tensor(edges[1:-1], dtype=x.dtype), right=True)
+    return torch.zeros(len(edges) - 1, dtype=torch.float64).index_add_(
+        0, idx.reshape(-1), w.reshape(-1).double())
+
+
+def _label(lo: float, hi: float) -> str:
+    return f"{lo:g}..{hi:g}"
 
 
 def main() -> int:
@@ -56,6 +76,8 @@ def main() -> int:
     tot = {n: 0.0 for n in names}
     sim = field.similarity
     ball = {n: 0.0 for n in names}
+    by_s = torch.zeros(len(S_EDGES) - 1, dtype=torch.float64)
+    by_f = torch.zeros(len(F_EDGES) - 1, dtype=torch.float64)
     with torch.no_grad():
         for v in range(len(data.cameras)):
             o, d = data.cameras.pixel_rays(v, 1)
@@ -70,9 +92,13 @@ def main() -> int:
                 for n, m in zip(names, classes):
                     tot[n] += float(w[m].sum())
                     ball[n] += float(w[m & inb].sum())
+                by_s += _binned(w, s, S_EDGES)
+                by_f += _binned(w, f, F_EDGES)
     total = max(sum(tot.values()), 1e-12)
     res = {"run": a.run, "stage": a.stage, "views": len(data.cameras), "h": h, "k": k,
-           "share": {n: v / total for n, v in tot.items()}}
+           "share": {n: v / total for n, v in tot.items()},
+           "by_s": {_label(*S_EDGES[i:i + 2]): float(by_s[i]) / total for i in range(len(by_s))},
+           "by_f": {_label(*F_EDGES[i:i + 2]): float(by_f[i]) / total for i in range(len(by_f))}}
     if sim is not None:
         res["share_ball"] = {n: ball[n] / total for n in names}
         res["share_outside"] = {n: (tot[n] - ball[n]) / total for n in names}

@@ -113,7 +113,7 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
         # rays start on the start sphere (`start_sphere`: 25.29 band, 29.04 full ray)
         cfg.update({"train": {"slope": "ray", "free_weight": 0.1},
                     "field": {"near_radius": start_sphere(cams.c2w[:, :3, 3], sim)},
-                    "shell": UNBOUNDED_SHELLS, "render": {"dp_max": 32}},
+                    "shell": UNBOUNDED_SHELLS, "render": UNBOUNDED_BAND},
                    "object preset, unbounded")
         return cfg, "object"
     box = frames.aabb.double()
@@ -130,6 +130,13 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
 # extraction 545 s instead of 101 (BENCHMARKS.md, nineteenth session)
 UNBOUNDED_SHELLS = {"beta_d": 1.0, "dilate_zeta": 1.0, "beta_e": 1.0, "erode_zeta": 0.5,
                     "v_max": 0.1}
+# ... and their band sampling (render and stage 2): on the soft wall behind fox an interval of
+# the wide shells spans up to a few units of the ray parameter s (`shells.render.warp`), and the
+# cap of 16 samples per interval (n_max) was what bound: on a stage-2 field trained under that
+# cap, rendering with n_max 48 gave 28.60 dB, finer spacing under the cap 28.07 (unchanged);
+# stage 2 trained with these settings: band 29.64 dB at 50.8 samples/px, full ray 29.04
+# (BENCHMARKS.md, twentieth session)
+UNBOUNDED_BAND = {"dp_max": 32, "w_s": 0.04, "delta_s": 0.03, "n_max": 64}
 START_RADII = 2.0  # the unbounded object preset's rays start this many radii from the centre
 CAMERA_SHARE = 0.8  # ... or at this share of the nearest training camera's distance, if less
 

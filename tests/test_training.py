@@ -250,12 +250,14 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     assert near[2.0] == pytest.approx(2.0 - 1.0 / (0.8 * math.hypot(3.0, 0.8) / 2.0))
     assert near[4.0] == 1.0
     assert preset_config("toy", big, 1, cpu, sim=sim)[0].field.near_radius == 1.0
-    # wide shells and 32 peels for an unbounded capture; a bounded object keeps the object
-    # preset's caps
+    # wide shells, 32 peels and up to 64 samples per interval for an unbounded capture; a
+    # bounded object keeps the object preset's caps
     unb_cfg = preset_config("object", big, 1, cpu, sim=sim)[0]
     assert (unb_cfg.shell.dilate_zeta, unb_cfg.shell.erode_zeta, unb_cfg.render.dp_max) == \
         (1.0, 0.5, 32)
+    assert (unb_cfg.render.w_s, unb_cfg.render.delta_s, unb_cfg.render.n_max) == (0.04, 0.03, 64)
     assert (cfg.shell.dilate_zeta, cfg.shell.erode_zeta, cfg.render.dp_max) == (0.25, 0.1, 8)
+    assert (cfg.render.w_s, cfg.render.delta_s, cfg.render.n_max) == (0.03, 0.02, 16)
     assert preset_config("paper", big, 1, cpu)[1] == "paper"
     # RGBA objects train on random backgrounds; the toy and paper presets on the data's colour
     assert cfg.train.random_background and half.train.random_background
