@@ -97,8 +97,19 @@ def lr_factor(step: int, iters: int, warmup: int, final: float) -> float:
 def step_generator(seed: int, step: int, device: torch.device,
                    shard: int = 0) -> torch.Generator:
     """The generator of shard ``shard`` of step ``step`` (shard 0: the stream of runs made
-    before shards existed)."""
-    return torch.Generator(device=device).manual_seed(seed * 1_000_003 + step + shard * 2 ** 40)
+    before shards existed).
+
+    The CPU generator (mt19937) keeps only the low 32 bits of its seed, so the shards must
+    differ there: shard k adds k x SHARD_STRIDE, an odd constant whose multiples (mod 2^32) lie
+    far from every step offset a run reaches (shard k of step t would meet shard 0 of step
+    t + k x SHARD_STRIDE mod 2^32, a billion steps away for k = 1, 2; nearly 2 million for
+    k < 1024). Before, the shards of a step added k x 2^40, which the CPU dropped: they drew the
+    same rays."""
+    return torch.Generator(device=device).manual_seed(
+        (seed * 1_000_003 + step + shard * SHARD_STRIDE) % 2 ** 63)
+
+
+SHARD_STRIDE = 0x9E3779B1  # 2^32 / golden ratio, odd: `step_generator`
 
 
 def psnr_of(mse: float) -> float:

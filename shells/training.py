@@ -113,7 +113,8 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
         # rays start on the start sphere (`start_sphere`: 25.29 band, 29.04 full ray)
         cfg.update({"train": {"slope": "ray", "free_weight": 0.1},
                     "field": {"near_radius": start_sphere(cams.c2w[:, :3, 3], sim)},
-                    "shell": UNBOUNDED_SHELLS, "render": UNBOUNDED_BAND},
+                    "shell": UNBOUNDED_SHELLS, "render": UNBOUNDED_BAND,
+                    "finetune": {"shards": UNBOUNDED_SHARDS}},
                    "object preset, unbounded")
         return cfg, "object"
     box = frames.aabb.double()
@@ -137,6 +138,13 @@ UNBOUNDED_SHELLS = {"beta_d": 1.0, "dilate_zeta": 1.0, "beta_e": 1.0, "erode_zet
 # stage 2 trained with these settings: band 29.64 dB at 50.8 samples/px, full ray 29.04
 # (BENCHMARKS.md, twentieth session)
 UNBOUNDED_BAND = {"dp_max": 32, "w_s": 0.04, "delta_s": 0.03, "n_max": 64}
+# ... and stage 2 draws its 4096 rays per step in 4 shards (`shells.loop` averages the shards'
+# gradients before the step): at ~52 samples a ray the elementwise work on one batch's
+# activations (200 k samples x 64) grew faster than the samples (profile: ReLU forward 15x,
+# its backward 6x for 2.3x the samples of n_max 16); on fox 1/8 stage 2 took 1555 s in 4
+# shards against 2965 s in one, for the same band (29.63 / 29.64 dB; `bench/stage2_shards.py`,
+# BENCHMARKS.md, twentieth session)
+UNBOUNDED_SHARDS = 4
 START_RADII = 2.0  # the unbounded object preset's rays start this many radii from the centre
 CAMERA_SHARE = 0.8  # ... or at this share of the nearest training camera's distance, if less
 

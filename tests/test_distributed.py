@@ -210,3 +210,28 @@ def test_independent_shards_merge_into_the_one_process_render(tmp_path, capsys):
     assert m["processes"] == 2 and m["n_views"] == 5 and (out / "video.mp4").is_file()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # stage removed
     assert render_main([*args, "--out", str(out), "--shard", "2/2"]) == 2
+
+
+def test_the_shards_of_a_step_draw_different_rays_on_the_cpu():
+    """Every shard of a step (and so every rank of a data-parallel run) gets its own rays. The
+    CPU generator keeps only the low 32 bits of a seed, so shard offsets above 2^32 (as they
+    were) gave all shards the same draws; shard 0 stays the stream of runs made before shards
+    existed."""
+    from shells.loop import step_generator
+
+    cpu = torch.device("cpu")
+    n_pixels = 100 * 100 * 50
+
+    def draw(step: int, shard: int) -> list[int]:
+        gen = step_generator(0, step, cpu, shard)
+        return torch.randint(0, n_pixels, (64,), generator=gen).tolist()
+
+    shards = [draw(7, k) for k in range(8)]
+    assert len({tuple(s) for s in shards}) == 8
+    # no overlap beyond chance between any two shards of a step (64 of 500 000 pixels each)
+    assert max(len(set(a) & set(b)) for i, a in enumerate(shards) for b in shards[i + 1:]) <= 1
+    # nor with the neighbouring steps' shards
+    assert all(draw(t, k) != shards[j] for t in (6, 8) for k in range(8) for j in range(8))
+    # shard 0: seed * 1_000_003 + step, the generator of runs made before shards existed
+    legacy = torch.Generator().manual_seed(7)
+    assert shards[0] == torch.randint(0, n_pixels, (64,), generator=legacy).tolist()

@@ -256,6 +256,7 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     assert (unb_cfg.shell.dilate_zeta, unb_cfg.shell.erode_zeta, unb_cfg.render.dp_max) == \
         (1.0, 0.5, 32)
     assert (unb_cfg.render.w_s, unb_cfg.render.delta_s, unb_cfg.render.n_max) == (0.04, 0.03, 64)
+    assert (unb_cfg.finetune.shards, cfg.finetune.shards) == (4, 1)  # stage 2 in 4 shards
     assert (cfg.shell.dilate_zeta, cfg.shell.erode_zeta, cfg.render.dp_max) == (0.25, 0.1, 8)
     assert (cfg.render.w_s, cfg.render.delta_s, cfg.render.n_max) == (0.03, 0.02, 16)
     assert preset_config("paper", big, 1, cpu)[1] == "paper"

@@ -1,0 +1,86 @@
+"""Stage-2 step time against the number of ray shards a step is drawn in (`finetune.shards`).
+
+    python bench/stage2_shards.py RUN [--shards 1,4,1,8] [--steps 4] [--config X.json]
+
+RUN has a stage-1 checkpoint and shells (`shells-extract`). For each shard count in turn, one
+warm-up step and then ``--steps`` timed steps of `shells.finetune.stage2_step` over the run's
+`finetune.batch_rays` rays, forward and backward with the gradients of the shards averaged as
+`shells.loop` does (no optimiser step, so the field stays the same). ``--config``: a JSON file
+with `render` / `finetune` sections overriding the run's (the band sampling the step uses).
+Prints s/step, rays/s and samples/s per shard count as JSON; counts listed twice show the drift
+of the machine within the run. Run it alone: the step uses all the cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from shells.config import override_config  # noqa: E402
+from shells.datasets import load_dataset  # noqa: E402
+from shells.finetune import stage2_step  # noqa: E402
+from shells.device import mitsuba_variant  # noqa: E402
+from shells.run import (RunDir, field_from_checkpoint, load_shells, read_checkpoint,  # noqa: E402
+                        read_run)
+
+from report import emit_json  # noqa: E402
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("run")
+    p.add_argument("--shards", default="1,4,1,8", help="comma-separated shard counts")
+    p.add_argument("--steps", type=int, default=4, help="timed steps per shard count")
+    p.add_argument("--config", default=None, help="JSON with render / finetune overrides")
+    a = p.parse_args()
+    run = RunDir(a.run)
+    meta = read_run(run)
+    field, cfg = field_from_checkpoint(read_checkpoint(run, "stage1"), a.run)
+    override_config(cfg, a.config, ("finetune", "render"), "stage2_shards")
+    field.train()
+    dev = torch.device("cpu")
+    scene = load_shells(run, mitsuba_variant(cfg.render.variant, dev), "fine")
+    data = load_dataset(meta["data"], "train", downscale=int(meta["downscale"]),
+                        background=cfg.data.background)
+    pixels = data.images.reshape(-1, 3)
+    background = torch.tensor(cfg.data.background, dtype=torch.float32)
+    rows = []
+    for shards in (int(x) for x in a.shards.split(",")):
+        fc = dataclasses.replace(cfg.finetune, shards=shards)
+        gen = torch.Generator().manual_seed(0)
+        samples = 0.0
+
+        def step() -> float:
+            n = 0.0
+            for _ in range(shards):
+                loss, logs = stage2_step(field, scene, data, pixels, fc, cfg.render, background,
+                                         gen)
+                (loss / shards).backward()
+                n += logs["spp"] * (fc.batch_rays // shards) / fc.pixel_samples
+            field.zero_grad(set_to_none=True)
+            return n
+
+        step()
+        t0 = time.perf_counter()
+        for _ in range(a.steps):
+            samples += step()
+        dt = (time.perf_counter() - t0) / a.steps
+        rows.append({"shards": shards, "s_per_step": dt, "rays_per_s": fc.batch_rays / dt,
+                     "samples_per_s": samples / a.steps / dt})
+        print(f"shards {shards}: {dt:.2f} s/step", file=sys.stderr, flush=True)
+    emit_json({"run": a.run, "batch_rays": cfg.finetune.batch_rays,
+               "render": {k: getattr(cfg.render, k) for k in ("dp_max", "w_s", "delta_s",
+                                                               "n_max")},
+               "threads": torch.get_num_threads(), "steps": a.steps, "rows": rows})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
