@@ -105,8 +105,8 @@ def step_generator(seed: int, step: int, device: torch.device,
     t + k x SHARD_STRIDE mod 2^32, a billion steps away for k = 1, 2; nearly 2 million for
     k < 1024). Before, the shards of a step added k x 2^40, which the CPU dropped: they drew the
     same rays."""
-    return torch.Generator(device=device).manual_seed(
-        (seed * 1_000_003 + step + shard * SHARD_STRIDE) % 2 ** 63)
+    return torch.Generator(device=device).manual_seed(seed * 1_000_003 + step
+                                                      + shard * SHARD_STRIDE)
 
 
 SHARD_STRIDE = 0x9E3779B1  # 2^32 / golden ratio, odd: `step_generator`
