@@ -4,10 +4,10 @@
 
 RUN has a stage-1 checkpoint and shells (`shells-extract`). For each shard count in turn, one
 warm-up step and then ``--steps`` timed steps of `shells.finetune.stage2_step` over the run's
-`finetune.batch_rays` rays, forward and backward with the gradients of the shards averaged by
-`shells.loop`'s own accumulation (no optimiser step, so the field stays the same).
-``--config``: a JSON file with `render` / `finetune` sections overriding the run's (the band
-sampling the step uses).
+`finetune.batch_rays` rays, forward and backward with the gradients of the shards averaged as
+`shells.loop` does (its accumulation is private to the loop, so it is written out here; no
+optimiser step, so the field stays the same). ``--config``: a JSON file
+with `render` / `finetune` sections overriding the run's (the band sampling the step uses).
 Prints s/step, rays/s and samples/s per shard count as JSON; counts listed twice show the drift
 of the machine within the run. Run it alone: the step uses all the cores.
 """
@@ -28,7 +28,6 @@ from shells.config import override_config  # noqa: E402
 from shells.datasets import load_dataset  # noqa: E402
 from shells.device import mitsuba_variant  # noqa: E402
 from shells.finetune import stage2_step  # noqa: E402
-from shells.loop import _accumulate, _Shard  # noqa: E402
 from shells.run import (RunDir, field_from_checkpoint, load_shells, read_checkpoint,  # noqa: E402
                         read_run)
 
@@ -56,15 +55,18 @@ def main() -> int:
     rows = []
     for shards in (int(x) for x in a.shards.split(",")):
         fc = dataclasses.replace(cfg.finetune, shards=shards)
-        shard = _Shard(field, lambda g, fc=fc: stage2_step(field, scene, data, pixels, fc,
-                                                           cfg.render, background, g))
         gen = torch.Generator().manual_seed(0)
         samples = 0.0
 
-        def step() -> float:  # the loop's accumulation over the step's shards (no DDP)
-            logs, _ = _accumulate(shard, [gen] * shards, field, False)
+        def step() -> float:
+            n = 0.0
+            for _ in range(shards):
+                loss, logs = stage2_step(field, scene, data, pixels, fc, cfg.render, background,
+                                         gen)
+                (loss / shards).backward()
+                n += logs["spp"] * (fc.batch_rays // shards) / fc.pixel_samples
             field.zero_grad(set_to_none=True)
-            return logs["spp"] * fc.batch_rays / fc.pixel_samples
+            return n
 
         step()
         t0 = time.perf_counter()
