@@ -37,6 +37,7 @@ from shells.datasets import (Dataset, load_dataset, read_frames, region_of_inter
                              says_unbounded)
 from shells.errors import InputError, write_json
 from shells.contraction import Similarity
+from shells.fields.hashgrid import drjit_on_calling_thread
 from shells.fields.network import ShellField
 from shells.fields.neus import may_have_density
 from shells.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
@@ -493,19 +494,20 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
         at[0] = k
         before_step(field, grid, tc, k)
 
-    summary = optimise(field, opt, cfg, Schedule.of("stage 1", tc),
-                       lambda gen: stage1_step(field, data, pixels, tc, background, gen, grid,
-                                               at[0], alpha),
-                       run.checkpoint("stage1"), run.log("stage1"), device, resume=ckpt,
-                       stop_at=stop_at, progress=progress, before_step=before, state=grid)
-    field.active_levels = None  # what the checkpoint's users evaluate: every level
-    if summary["finished"] and evaluate_test and w.main:
-        try:
-            test = load_dataset(data_dir, "test", downscale=downscale,
-                                background=cfg.data.background)
-        except InputError:
-            test = None  # a data set without a test split: nothing to score
-        if test is not None:
-            summary["test"] = evaluate(field, test, tc, tc.eval_max_views, device, grid)
-        write_json(run.summary("stage1"), summary)
+    with drjit_on_calling_thread():  # torch work between the lookups (its docstring)
+        summary = optimise(field, opt, cfg, Schedule.of("stage 1", tc),
+                           lambda gen: stage1_step(field, data, pixels, tc, background, gen,
+                                                   grid, at[0], alpha),
+                           run.checkpoint("stage1"), run.log("stage1"), device, resume=ckpt,
+                           stop_at=stop_at, progress=progress, before_step=before, state=grid)
+        field.active_levels = None  # what the checkpoint's users evaluate: every level
+        if summary["finished"] and evaluate_test and w.main:
+            try:
+                test = load_dataset(data_dir, "test", downscale=downscale,
+                                    background=cfg.data.background)
+            except InputError:
+                test = None  # a data set without a test split: nothing to score
+            if test is not None:
+                summary["test"] = evaluate(field, test, tc, tc.eval_max_views, device, grid)
+            write_json(run.summary("stage1"), summary)
     return summary

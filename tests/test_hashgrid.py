@@ -198,3 +198,29 @@ def test_lookup_without_gradient_runs_drjit_and_matches_torch_bit_for_bit(cfg, m
     g.params.requires_grad_(False)
     xg = x.clone().requires_grad_()
     assert g(xg).requires_grad and calls == [3000, 3000]
+
+
+def test_lookups_on_the_calling_thread_give_the_same_floats_and_the_pool_comes_back():
+    """`drjit_on_calling_thread`: inside, Dr.Jit's pool is the calling thread alone and the
+    lookup without gradient gives the pool's floats bit for bit; after it (also after an
+    error inside) the pool has its size again."""
+    from shells.fields.hashgrid import drjit_on_calling_thread
+
+    g = _grid(*TOY)
+    x = _points(20000)
+    size = dr.thread_count()
+    dr.set_thread_count(2)  # a pool with a worker, whatever this machine's default
+    try:
+        with torch.no_grad():
+            pooled = g(x)
+            with drjit_on_calling_thread():
+                assert dr.thread_count() == 1
+                alone = g(x)
+        assert dr.thread_count() == 2
+        assert torch.equal(alone, pooled)
+        with pytest.raises(RuntimeError, match="inside"):
+            with drjit_on_calling_thread():
+                raise RuntimeError("inside")
+        assert dr.thread_count() == 2
+    finally:
+        dr.set_thread_count(size)

@@ -284,6 +284,26 @@ def test_train_cli_errors(tiny_blender, tmp_path, capsys):
     assert "itres" in capsys.readouterr().err
 
 
+def test_stage1_runs_drjit_lookups_on_the_calling_thread(tiny_blender, tmp_path, monkeypatch):
+    """Stage 1's steps (and its occupancy-grid rebuilds) run with Dr.Jit's pool reduced to the
+    calling thread (`drjit_on_calling_thread`), and the pool has its size again afterwards."""
+    import drjit as dr
+
+    import shells.training as tr
+
+    seen, real = [], tr.stage1_step
+    monkeypatch.setattr(tr, "stage1_step", lambda *a, **k: seen.append(dr.thread_count())
+                        or real(*a, **k))
+    size = dr.thread_count()
+    dr.set_thread_count(2)  # a pool with a worker, whatever this machine's default
+    try:
+        tr.train(tiny_blender, tmp_path / "t", _tiny_config("occupancy"), torch.device("cpu"),
+                 progress=False, evaluate_test=False)
+        assert seen == [1] * 6 and dr.thread_count() == 2
+    finally:
+        dr.set_thread_count(size)
+
+
 def test_global_kernel_ablation_keeps_one_kernel_size(tiny_blender, tmp_path):
     # FieldConfig.global_kernel: s is one learned scalar (paper Table 4's "global kernel" row)
     cfg = _tiny_config()

@@ -23,9 +23,11 @@ row r, feature f at r * F + f; the output is ordered [l0f0, l0f1, l1f0, ...].
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import drjit as dr
@@ -201,6 +203,29 @@ _ENCODING_LOCK = threading.Lock()
 def _llvm() -> bool:
     """Whether Dr.Jit's LLVM backend is usable here (it needs libLLVM at run time)."""
     return bool(dr.has_backend(dr.JitBackend.LLVM))
+
+
+@contextlib.contextmanager
+def drjit_on_calling_thread() -> Iterator[None]:
+    """Within the block, Dr.Jit's LLVM kernels (the lookups without gradient) run on the calling
+    thread alone; the pool's size is restored after it.
+
+    For torch work between the lookups (training on the CPU). A worker of Dr.Jit's thread pool
+    (nanothread) busy-waits for 500 000 attempts at new work after every kernel before it
+    sleeps, and meanwhile holds a core that torch's OpenMP threads need: on 2 cores the
+    geometry MLP right after a lookup took 16-22 ms against 8 ms otherwise, and a stage-1
+    step of lego 1/8 ran 1.15-1.2x faster with the lookups on the calling thread
+    (BENCHMARKS.md, "Dr.Jit's spinning workers"). The lookups give the same floats on any
+    number of threads (each point is computed alone)."""
+    if not _llvm():
+        yield
+        return
+    size = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(size)
 
 
 @functools.cache
