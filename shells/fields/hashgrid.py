@@ -213,10 +213,10 @@ def drjit_on_calling_thread() -> Iterator[None]:
     For torch work between the lookups (training on the CPU). A worker of Dr.Jit's thread pool
     (nanothread) busy-waits for 500 000 attempts at new work after every kernel before it
     sleeps, and meanwhile holds a core that torch's OpenMP threads need: on 2 cores the
-    geometry MLP right after a lookup took 16-22 ms against 8 ms otherwise, and a stage-1
-    step of lego 1/8 ran 1.15-1.2x faster with the lookups on the calling thread
-    (BENCHMARKS.md, "Dr.Jit's spinning workers"). The lookups give the same floats on any
-    number of threads (each point is computed alone)."""
+    geometry MLP right after a lookup took 16 ms against 8 ms otherwise, and a stage-1 step
+    of lego 1/8 ran 1.12-1.23x faster with the lookups on the calling thread
+    (`bench/drjit_threads.py`; BENCHMARKS.md, "Dr.Jit's spinning workers"). The lookups give
+    the same floats on any number of threads (each point is computed alone)."""
     if not _llvm():
         yield
         return
