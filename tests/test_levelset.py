@@ -220,3 +220,32 @@ def test_sample_grid_cuda_matches_cpu():
     f_gpu, s_gpu, _ = sample_grid(SphereField().cuda(), BOX, 17, device="cuda")
     np.testing.assert_allclose(f_gpu, f_cpu, atol=1e-6)
     np.testing.assert_allclose(s_gpu, s_cpu, atol=1e-7)
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.01])
+def test_fused_cpu_kernel_matches_the_torch_step_and_chunks_change_nothing(lam, monkeypatch):
+    """On the CPU each sub-step is one Dr.Jit kernel (`_integrate_llvm`, neighbours found from
+    the flat index); the torch step (what CUDA runs) gives the same grid to float32 rounding,
+    and the kernel run in 1024-voxel chunks (memory_mb 0) gives it bit for bit. Two sub-steps
+    per step, the grid's border inside the band."""
+    import shells.levelset.evolve as ev
+
+    rng = np.random.default_rng(3)
+    X, Y, Z, h = grid(18)
+    f0 = (np.sqrt(X**2 + Y**2 + Z**2) - 0.7 + 0.03 * rng.normal(size=X.shape)).astype(np.float32)
+    v = rng.uniform(0, 0.9, size=X.shape).astype(np.float32)
+    assert substeps(float(v.max()), 0.1, (h,) * 3) == 2
+    band = np.abs(f0) < 0.4
+    assert band.sum() > 1024 and band[0].any()  # several chunks; border voxels in the band
+    torch_steps = []
+    step = ev._step
+    monkeypatch.setattr(ev, "_step", lambda *a: torch_steps.append(1) or step(*a))
+    fused = evolve(f0, v, (h,) * 3, 5, 0.1, 0.4, lam)
+    chunked = evolve(f0, v, (h,) * 3, 5, 0.1, 0.4, lam, memory_mb=0)
+    assert torch_steps == []
+    monkeypatch.setattr(ev, "_llvm", lambda: False)  # as on CUDA: the torch step
+    reference = evolve(f0, v, (h,) * 3, 5, 0.1, 0.4, lam)
+    assert len(torch_steps) == 10
+    np.testing.assert_array_equal(chunked, fused)
+    assert np.abs(fused - f0).max() > 0.05  # the front moved
+    np.testing.assert_allclose(fused, reference, rtol=0, atol=2e-6)

@@ -48,9 +48,11 @@ inward; the toy preset allows 0.25 / 0.1 for the thick core-fuzz coat, see shell
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
+import drjit as dr
 import numpy as np
 import torch
 
@@ -90,6 +92,8 @@ def substeps(v_max: float, dt: float, spacing, cfl: float = 0.5) -> int:
 
 BYTES_PER_BAND_VOXEL = 200  # memory of one band voxel in a step: 19 neighbour indices and
 # ~25 float temporaries (4 bytes each); the band is split into chunks that fit the budget
+LLVM_BYTES_PER_BAND_VOXEL = 16  # the same in the fused Dr.Jit kernel (`_integrate_llvm`): its
+# index, speed and new value (4 bytes each); neighbours and temporaries stay in registers
 
 
 def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world units)
@@ -108,6 +112,12 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
     step before (the chunks' new values are written back together), so the result is the same,
     bit for bit. ``progress``: the label of a progress bar over the (sub-)steps (None: no
     bar). Returns the evolved grid as float32 numpy.
+
+    On the CPU a step is one fused Dr.Jit LLVM kernel (`_integrate_llvm`, the same arithmetic
+    as the torch `_step`, which CUDA tensors take): the ~26 tensor ops of `_step` each read and
+    write the whole band, where the kernel reads a voxel's neighbours once and finds them from
+    its flat index (fox's wide shells at 256^3: 478 s of evolution in torch, BENCHMARKS.md,
+    "Level-set evolution in one kernel").
     """
     f0 = np.asarray(f0, dtype=np.float32)
     assert f0.ndim == 3 and np.shape(v) == f0.shape, (f0.shape, np.shape(v))
@@ -126,6 +136,10 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
         torch.set_num_threads(1)
     chunk = max(1024, (int(memory_mb) << 20) // BYTES_PER_BAND_VOXEL)
     try:
+        if f.device.type == "cpu" and _llvm() and f.numel() < 2 ** 31:
+            chunk = max(1024, (int(memory_mb) << 20) // LLVM_BYTES_PER_BAND_VOXEL)
+            return _integrate_llvm(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
+                                   chunk, progress)
         if band.size <= chunk:
             return _integrate(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
                               progress)
@@ -178,6 +192,81 @@ def _integrate_chunked(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, c
             del idx
         f.index_copy_(0, active, new)
     return f.reshape(shape).cpu().numpy()
+
+
+@functools.cache
+def _llvm() -> bool:
+    """Whether Dr.Jit's LLVM backend is usable here (it needs libLLVM at run time)."""
+    return bool(dr.has_backend(dr.JitBackend.LLVM))
+
+
+def _integrate_llvm(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
+                    chunk: int, progress: str | None = None) -> np.ndarray:
+    """`_integrate` with each sub-step one Dr.Jit kernel per chunk of ``chunk`` band voxels
+    (`_step_llvm`); all chunks' new values are computed from the grid of the step before,
+    then scattered into it."""
+    from drjit.llvm import Float, Int32
+
+    n_sub = substeps(float(v_a.abs().max()), dt, h, cfl)
+    dt_sub = dt / n_sub
+    lam_w = float(lambda_curv) * float(h.min()) ** 2
+    grid = Float(f.contiguous())
+    parts = [(Int32(active[a:a + chunk].to(torch.int32)), Float(v_a[a:a + chunk].contiguous()))
+             for a in range(0, active.numel(), chunk)]
+    for _ in _steps(steps * n_sub, progress):
+        new = [_step_llvm(grid, act, v, shape, h, dt_sub, lam_w, zeta) for act, v in parts]
+        dr.eval(new)  # every chunk reads the grid of the step before ...
+        for (act, _), values in zip(parts, new):
+            dr.scatter(grid, values, act)  # ... then all are written back
+        dr.eval(grid)
+    return grid.numpy().reshape(shape)
+
+
+def _step_llvm(grid, active, v_a, shape: tuple[int, int, int], h, dt_sub: float,
+               lam_w: float, zeta: float):
+    """`_step` for Dr.Jit (grid, v_a: Float; active: Int32 flat indices), traced into one
+    kernel: the same operations in the same order, with the neighbours (clamped at the border,
+    one-sided differences there) found from the flat index as `_neighbours` finds them."""
+    from drjit.llvm import Float
+
+    strides = (shape[1] * shape[2], shape[2], 1)
+    i = active // strides[0]
+    rest = active - i * strides[0]
+    j = rest // strides[1]
+    coords = (i, j, rest - j * strides[1])
+    sp, sm, inv_d = [], [], []
+    for ax in range(3):
+        up, down = coords[ax] < shape[ax] - 1, coords[ax] > 0
+        sp.append(dr.select(up, strides[ax], 0))
+        sm.append(dr.select(down, -strides[ax], 0))
+        # 1 / (distance of the two neighbours): 2 h inside, h at a border (as _neighbours)
+        inv_d.append(dr.select(up & down, float(np.float32(0.5 / float(h[ax]))),
+                               float(np.float32(1.0 / float(h[ax])))))
+    k_phase = math.pi / zeta
+    fc = dr.gather(Float, grid, active)
+    fp = [dr.gather(Float, grid, active + sp[ax]) for ax in range(3)]
+    fm = [dr.gather(Float, grid, active + sm[ax]) for ax in range(3)]
+    g = [(fp[ax] - fm[ax]) * inv_d[ax] for ax in range(3)]
+    gnorm2 = g[0] * g[0] + g[1] * g[1] + g[2] * g[2]
+    gnorm = dr.sqrt(gnorm2)
+    rate = gnorm * (v_a * (0.5 * dt_sub))
+    if lam_w > 0.0:
+        num = Float(0.0)
+        for ax in range(3):
+            f_ii = (fp[ax] + fm[ax] - 2.0 * fc) * (1.0 / float(h[ax]) ** 2)
+            num = num + f_ii * (gnorm2 - g[ax] * g[ax])
+        for a, b in ((0, 1), (0, 2), (1, 2)):
+            corners = [dr.gather(Float, grid, active + da + db)
+                       for da, db in ((sp[a], sp[b]), (sp[a], sm[b]), (sm[a], sp[b]),
+                                      (sm[a], sm[b]))]
+            f_ab = ((corners[0] - corners[1] - corners[2] + corners[3])
+                    * (-0.5 / (float(h[a]) * float(h[b]))))
+            num = num + g[a] * g[b] * f_ab
+        kmax = 1.0 / float(h.min())
+        kappa = dr.clip(num / (gnorm2 * gnorm + 1e-12), -kmax, kmax)
+        rate = rate - (0.5 * dt_sub * lam_w) * (kappa * gnorm)
+    one_plus_cos = dr.cos(dr.clip(fc * k_phase, -math.pi, math.pi)) + 1.0
+    return fc - rate * one_plus_cos
 
 
 def _step(f, idx: dict, v_a, h, dt_sub: float, lam_w: float, zeta: float) -> torch.Tensor:
