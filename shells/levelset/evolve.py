@@ -116,8 +116,8 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
     On the CPU a step is one fused Dr.Jit LLVM kernel (`_integrate_llvm`, the same arithmetic
     as the torch `_step`, which CUDA tensors take): the ~26 tensor ops of `_step` each read and
     write the whole band, where the kernel reads a voxel's neighbours once and finds them from
-    its flat index (fox's wide shells at 256^3: 478 s of evolution in torch, BENCHMARKS.md,
-    "Level-set evolution in one kernel").
+    its flat index (fox's wide shells at 256^3: 478 s of evolution in torch, 6.8 s so;
+    BENCHMARKS.md, "Level-set evolution in one kernel").
     """
     f0 = np.asarray(f0, dtype=np.float32)
     assert f0.ndim == 3 and np.shape(v) == f0.shape, (f0.shape, np.shape(v))
