@@ -107,11 +107,12 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
 
     Central differences (one-sided at the grid border), forward Euler with the sub-steps of
     `substeps`; only the band |f0| < zeta is updated (see the module docstring for units).
-    A band larger than ``memory_mb`` allows (`BYTES_PER_BAND_VOXEL`) is updated in chunks
-    whose neighbour indices are rebuilt every step; each step still reads the grid of the
-    step before (the chunks' new values are written back together), so the result is the same,
-    bit for bit. ``progress``: the label of a progress bar over the (sub-)steps (None: no
-    bar). Returns the evolved grid as float32 numpy.
+    A band larger than ``memory_mb`` allows (`BYTES_PER_BAND_VOXEL`, or on the CPU
+    `LLVM_BYTES_PER_BAND_VOXEL`) is updated in chunks (in torch, their neighbour indices
+    rebuilt every step); each step still reads the grid of the step before (the chunks' new
+    values are written back together), so the result is the same, bit for bit. ``progress``:
+    the label of a progress bar over the (sub-)steps (None: no bar). Returns the evolved grid
+    as float32 numpy.
 
     On the CPU a step is one fused Dr.Jit LLVM kernel (`_integrate_llvm`, the same arithmetic
     as the torch `_step`, which CUDA tensors take): the ~26 tensor ops of `_step` each read and
@@ -225,8 +226,9 @@ def _integrate_llvm(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
 def _step_llvm(grid, active, v_a, shape: tuple[int, int, int], h, dt_sub: float,
                lam_w: float, zeta: float):
     """`_step` for Dr.Jit (grid, v_a: Float; active: Int32 flat indices), traced into one
-    kernel: the same operations in the same order, with the neighbours (clamped at the border,
-    one-sided differences there) found from the flat index as `_neighbours` finds them."""
+    kernel: the same operations in the same order (the same values to float32 rounding: the
+    kernel may fuse multiply-adds), with the neighbours (clamped at the border, one-sided
+    differences there) found from the flat index as `_neighbours` finds them."""
     from drjit.llvm import Float
 
     strides = (shape[1] * shape[2], shape[2], 1)
