@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from shells.errors import InputError, uninterrupted
@@ -43,3 +45,12 @@ def mitsuba_variant(name: str | None = None, device: torch.device | str | None =
         with uninterrupted():
             mi.set_variant(name)
     return name
+
+
+@functools.cache
+def drjit_llvm() -> bool:
+    """Whether Dr.Jit's LLVM backend (the CPU kernels) is usable here: it needs libLLVM at run
+    time."""
+    import drjit as dr
+
+    return bool(dr.has_backend(dr.JitBackend.LLVM))

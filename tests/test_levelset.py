@@ -243,7 +243,7 @@ def test_fused_cpu_kernel_matches_the_torch_step_and_chunks_change_nothing(lam, 
     fused = evolve(f0, v, (h,) * 3, 5, 0.1, 0.4, lam)
     chunked = evolve(f0, v, (h,) * 3, 5, 0.1, 0.4, lam, memory_mb=0)
     assert torch_steps == []
-    monkeypatch.setattr(ev, "_llvm", lambda: False)  # as on CUDA: the torch step
+    monkeypatch.setattr(ev, "drjit_llvm", lambda: False)  # as on CUDA: the torch step
     reference = evolve(f0, v, (h,) * 3, 5, 0.1, 0.4, lam)
     assert len(torch_steps) == 10
     np.testing.assert_array_equal(chunked, fused)

@@ -34,6 +34,7 @@ import drjit as dr
 import torch
 from torch import nn
 
+from shells.device import drjit_llvm
 from shells.errors import InputError
 
 PRIMES = (1, 2654435761, 805459861)  # tiny-cuda-nn / Dr.Jit spatial-hash primes (x, y, z)
@@ -187,7 +188,7 @@ class HashGrid(nn.Module):
         if x01.ndim != 2 or x01.shape[1] != 3:
             raise InputError(f"HashGrid: points must be [N, 3], got {tuple(x01.shape)}")
         N = x01.shape[0]
-        if (self.inference == "auto" and x01.device.type == "cpu" and _llvm()
+        if (self.inference == "auto" and x01.device.type == "cpu" and drjit_llvm()
                 and not (torch.is_grad_enabled()
                          and (self.params.requires_grad or x01.requires_grad))):
             return _drjit_lookup(self, x01)
@@ -197,12 +198,6 @@ class HashGrid(nn.Module):
 
 
 _ENCODING_LOCK = threading.Lock()
-
-
-@functools.cache
-def _llvm() -> bool:
-    """Whether Dr.Jit's LLVM backend is usable here (it needs libLLVM at run time)."""
-    return bool(dr.has_backend(dr.JitBackend.LLVM))
 
 
 @contextlib.contextmanager
@@ -217,7 +212,7 @@ def drjit_on_calling_thread() -> Iterator[None]:
     of lego 1/8 ran 1.12-1.23x faster with the lookups on the calling thread
     (`bench/drjit_threads.py`; BENCHMARKS.md, "Dr.Jit's spinning workers"). The lookups give
     the same floats on any number of threads (each point is computed alone)."""
-    if not _llvm():
+    if not drjit_llvm():
         yield
         return
     size = dr.thread_count()

@@ -48,7 +48,6 @@ inward; the toy preset allows 0.25 / 0.1 for the thick core-fuzz coat, see shell
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Any
 
@@ -57,6 +56,7 @@ import numpy as np
 import torch
 
 from shells.config import ShellConfig
+from shells.device import drjit_llvm
 
 
 def falloff(f, zeta: float):
@@ -137,7 +137,7 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
         torch.set_num_threads(1)
     chunk = max(1024, (int(memory_mb) << 20) // BYTES_PER_BAND_VOXEL)
     try:
-        if f.device.type == "cpu" and _llvm() and f.numel() < 2 ** 31:
+        if f.device.type == "cpu" and drjit_llvm() and f.numel() < 2 ** 31:
             chunk = max(1024, (int(memory_mb) << 20) // LLVM_BYTES_PER_BAND_VOXEL)
             return _integrate_llvm(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
                                    chunk, progress)
@@ -193,12 +193,6 @@ def _integrate_chunked(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, c
             del idx
         f.index_copy_(0, active, new)
     return f.reshape(shape).cpu().numpy()
-
-
-@functools.cache
-def _llvm() -> bool:
-    """Whether Dr.Jit's LLVM backend is usable here (it needs libLLVM at run time)."""
-    return bool(dr.has_backend(dr.JitBackend.LLVM))
 
 
 def _integrate_llvm(f, active, v_a, shape, h, steps, dt, zeta, lambda_curv, cfl,
