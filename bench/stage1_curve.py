@@ -9,7 +9,7 @@ Trains the same data twice, one after the other or interleaved (never two traini
 * ``old``: the toy preset as it was before issue 13 (``sampler`` "box": every ray sampled over
   its whole chord through the scene box, 1024 rays per step);
 * ``new``: what ``--preset auto`` picks for the data (`shells.training.preset_config`: on the
-  CPU for images above 96 px the "object" preset, with empty-space skipping).
+  CPU the "object" preset, with empty-space skipping).
 
 Each run is cut into ``--segments`` equal pieces (``train(..., stop_at=k)`` then ``--resume``,
 which retraces the uninterrupted run exactly); after each piece the checkpoint is scored on

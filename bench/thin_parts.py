@@ -4,9 +4,9 @@
                                [--iters 1500] [--test-views 6] [--seed 0]
 
 Renders the scene as `tests/test_thin_parts.py` does (64x64, 32 train views, ``--test-views``
-test views) into OUT/data unless it is there, trains stage 1 with what the test trains (the
-toy preset, ``--preset auto`` at 64 px, with the "occupancy" sampler and ``--iters`` steps;
-``--preset object`` trains the real-object preset sized from the data instead) plus
+test views) into OUT/data unless it is there, trains stage 1 with ``--preset`` (auto and
+object: the real-object preset sized from the data, as the test trains; toy: the demo's
+preset) with the "occupancy" sampler and ``--iters`` steps, plus
 ``--config`` on top, and prints JSON: per part (`scenes.parts.part_scores`) the test
 pixels, mean |error| and mean opacity of the full-ray render (stage 1's own sampler), the
 error ratios rod / sphere and plate / sphere (issue 13 asks for <= 1), and the training
@@ -41,7 +41,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", required=True)
     p.add_argument("--preset", default="auto", choices=("auto", "toy", "object"),
-                   help="the base config as `shells-train --preset` (auto: the toy preset here)")
+                   help="the base config as `shells-train --preset` (auto: the object preset)")
     p.add_argument("--config", default=None, help="JSON overrides on top of the test's config")
     p.add_argument("--iters", type=int, default=1500)
     p.add_argument("--test-views", type=int, default=6, help="6: the test's data set")

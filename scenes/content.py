@@ -36,6 +36,12 @@ class SceneSpec:
     sigma_scale: float = 0.0  # extinction = sigma_scale * density (1 / world units)
     medium_radius: float = 0.0  # the medium lives inside this sphere at the origin
     room_radius: float = 0.0  # > 0: a self-lit room sphere of this radius closes every ray
+    medium_centre: tuple[float, float, float] = (0.0, 0.0, 0.0)  # centre of the medium's sphere
+    cylinders: list[tuple[tuple[float, float, float], float, float]] = field(
+        default_factory=list)  # open tubes along z with a wall of zero thickness (centre,
+    # radius, half height), opaque
+    names: list[str] = field(default_factory=list)  # one name per object in `first_hit`'s
+    # order (spheres, boxes, cylinders), then "fuzz" for the medium if there is one
 
 
 def lights() -> dict[str, Any]:
@@ -65,7 +71,7 @@ def sphere(rng: np.random.Generator) -> SceneSpec:
     content = {"ball": _textured_ball(rng, SPHERE_RADIUS), **lights()}
     return SceneSpec(content, {"name": "sphere", "center": [0.0, 0.0, 0.0],
                                "radius": SPHERE_RADIUS},
-                     spheres=[((0.0, 0.0, 0.0), SPHERE_RADIUS)])
+                     spheres=[((0.0, 0.0, 0.0), SPHERE_RADIUS)], names=["sphere"])
 
 
 def _textured_ball(rng: np.random.Generator, radius: float) -> dict[str, Any]:
@@ -101,24 +107,24 @@ def fuzz_density(rng: np.random.Generator, res: int = GRID_RES, radius: float = 
 
 
 def _fuzz_medium(density: np.ndarray,  # [G, G, G]
-                 sigma_scale: float, radius: float):
+                 sigma_scale: float, radius: float, centre=(0.0, 0.0, 0.0)):
     """Heterogeneous medium of warm-coloured, forward-scattering fibres over the grid box."""
     import mitsuba as mi
 
     return mi.load_dict({
         "type": "heterogeneous",
-        "sigma_t": density_volume(density, radius),
+        "sigma_t": density_volume(density, radius, centre),
         "scale": sigma_scale,
         "albedo": {"type": "rgb", "value": [0.85, 0.62, 0.38]},
         "phase": {"type": "hg", "g": 0.3}})
 
 
 def density_volume(density: np.ndarray,  # [G, G, G]
-                   radius: float) -> dict[str, Any]:
-    """``gridvolume`` dict mapping the grid onto [-radius, radius]^3 (trilinear)."""
+                   radius: float, centre=(0.0, 0.0, 0.0)) -> dict[str, Any]:
+    """``gridvolume`` dict mapping the grid onto centre + [-radius, radius]^3 (trilinear)."""
     import mitsuba as mi
 
-    box = mi.ScalarTransform4f().translate([-radius] * 3).scale(2 * radius)
+    box = mi.ScalarTransform4f().translate([c - radius for c in centre]).scale(2 * radius)
     return {"type": "gridvolume", "grid": mi.VolumeGrid(density[..., None]),
             "to_world": box, "filter_type": "trilinear"}
 
@@ -146,7 +152,7 @@ def thin_parts(rng: np.random.Generator) -> SceneSpec:
                "plate": _box(*plate, (0.15, 0.45, 0.8)), **lights()}
     return SceneSpec(content, {"name": "thin-parts", "sphere": [list(c), r],
                                "rod": [list(v) for v in rod], "plate": [list(v) for v in plate]},
-                     spheres=[(c, r)], boxes=[rod, plate])
+                     spheres=[(c, r)], boxes=[rod, plate], names=["sphere", "rod", "plate"])
 
 
 def unbounded(rng: np.random.Generator) -> SceneSpec:
@@ -166,7 +172,8 @@ def unbounded(rng: np.random.Generator) -> SceneSpec:
     return SceneSpec({"ball": ball, "room": room, **lights()},
                      {"name": "unbounded", "center": [0.0, 0.0, 0.0], "radius": SPHERE_RADIUS,
                       "room_radius": ROOM_RADIUS},
-                     spheres=[((0.0, 0.0, 0.0), SPHERE_RADIUS)], room_radius=ROOM_RADIUS)
+                     spheres=[((0.0, 0.0, 0.0), SPHERE_RADIUS)], room_radius=ROOM_RADIUS,
+                     names=["sphere"])
 
 
 def fuzzy_sphere(rng: np.random.Generator) -> SceneSpec:
@@ -177,7 +184,8 @@ def fuzzy_sphere(rng: np.random.Generator) -> SceneSpec:
                **lights()}
     return SceneSpec(content, {"name": "fuzzy-sphere", "center": [0.0, 0.0, 0.0],
                                "radius": FUZZ_RADIUS},
-                     density=density, sigma_scale=sigma, medium_radius=FUZZ_RADIUS)
+                     density=density, sigma_scale=sigma, medium_radius=FUZZ_RADIUS,
+                     names=["fuzz"])
 
 
 def core_fuzz(rng: np.random.Generator) -> SceneSpec:
@@ -194,4 +202,61 @@ def core_fuzz(rng: np.random.Generator) -> SceneSpec:
     return SceneSpec(content, {"name": "core-fuzz", "center": [0.0, 0.0, 0.0],
                                "core_radius": CORE_RADIUS, "coat_radius": FUZZ_RADIUS},
                      spheres=[((0.0, 0.0, 0.0), CORE_RADIUS)], density=density,
-                     sigma_scale=sigma, medium_radius=FUZZ_RADIUS)
+                     sigma_scale=sigma, medium_radius=FUZZ_RADIUS, names=["core", "fuzz"])
+
+
+def _glossy(rgb) -> dict[str, Any]:
+    return {"type": "roughplastic", "distribution": "ggx", "alpha": 0.1,
+            "diffuse_reflectance": {"type": "rgb", "value": list(rgb)}}
+
+
+# `white-tube`: (centre, radius) of the spheres, (centre, half extents) of the cube, (centre,
+# radius, half height) of the tube
+TUBE_SPHERES = (((-0.3, -0.2, 0.1), 0.28), ((-0.3, 0.38, -0.3), 0.11))
+TUBE_BOX = ((0.38, -0.32, -0.3), (0.09, 0.09, 0.09))
+TUBE = ((0.18, 0.12, 0.0), 0.17, 0.4)
+
+
+def white_tube(rng: np.random.Generator) -> SceneSpec:
+    """`white-tube`: a white open tube with a wall of zero thickness (seen from both sides)
+    beside glossy coloured solids of different sizes (a sphere of radius 0.28, a cube 0.18
+    wide, a sphere of radius 0.11). The tube's lit side is as white as a white background:
+    there only its shading tells it apart."""
+    (c0, r0), (c1, r1) = TUBE_SPHERES
+    (cb, hb), (ct, rt, ht) = TUBE_BOX, TUBE
+    white = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.9, 0.9, 0.9]}}
+    tube = {"type": "cylinder", "radius": rt,
+            "p0": [ct[0], ct[1], ct[2] - ht], "p1": [ct[0], ct[1], ct[2] + ht],
+            "bsdf": {"type": "twosided", "bsdf": white}}
+    content = {"big": {"type": "sphere", "center": list(c0), "radius": r0,
+                       "bsdf": _glossy((0.8, 0.12, 0.08))},
+               "small": {"type": "sphere", "center": list(c1), "radius": r1,
+                         "bsdf": _glossy((0.1, 0.7, 0.15))},
+               "box": dict(_box(cb, hb, (0.1, 0.25, 0.85)), bsdf=_glossy((0.1, 0.25, 0.85))),
+               "tube": tube, **lights()}
+    return SceneSpec(content, {"name": "white-tube",
+                               "spheres": [[list(c), r] for c, r in TUBE_SPHERES],
+                               "box": [list(v) for v in TUBE_BOX], "tube": [list(ct), rt, ht]},
+                     spheres=list(TUBE_SPHERES), boxes=[TUBE_BOX], cylinders=[TUBE],
+                     names=["big sphere", "small sphere", "cube", "tube"])
+
+
+OFF_FUZZ = ((0.3, -0.25, 0.2), 0.38)  # `off-centre`: the fuzzy ball (centre, radius)
+OFF_SPHERE = ((-0.42, 0.38, -0.3), 0.12)  # ... and the small glossy sphere
+
+
+def off_centre(rng: np.random.Generator) -> SceneSpec:
+    """`off-centre`: a fuzzy ball (hair-like medium, no hard surface) far off the box centre
+    and a small glossy sphere on the other side: nothing where the field's initial sphere is."""
+    (cf, rf), (cs, rs) = OFF_FUZZ, OFF_SPHERE
+    density, sigma = fuzz_density(rng, radius=rf, inner=0.1), 30.0
+    content = {"fuzz": {"type": "sphere", "center": list(cf), "radius": rf,
+                        "bsdf": {"type": "null"},
+                        "interior": _fuzz_medium(density, sigma, rf, cf)},
+               "ball": {"type": "sphere", "center": list(cs), "radius": rs,
+                        "bsdf": _glossy((0.15, 0.3, 0.9))},
+               **lights()}
+    return SceneSpec(content, {"name": "off-centre", "fuzz": [list(cf), rf],
+                               "sphere": [list(cs), rs]},
+                     spheres=[OFF_SPHERE], density=density, sigma_scale=sigma,
+                     medium_radius=rf, medium_centre=cf, names=["sphere", "fuzz"])

@@ -34,6 +34,8 @@ SCENES: dict[str, Builder] = {
     "core-fuzz": content.core_fuzz,
     "thin-parts": content.thin_parts,
     "unbounded": content.unbounded,
+    "white-tube": content.white_tube,
+    "off-centre": content.off_centre,
 }
 CAMERA_ANGLE_X = math.radians(40.0)  # horizontal field of view of every view
 AABB = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]  # scene box written to the JSON
@@ -41,7 +43,7 @@ MAX_DEPTH = 3  # path length of the colour pass (direct light + one extra bounce
 
 
 def _check_options(name: str, res: int, views: int, test_views: int, spp: int,
-                   seed: int) -> None:
+                   seed: int, backdrop: Any = None, distance: float | None = None) -> None:
     if name not in SCENES:
         raise InputError(f"unknown scene '{name}'; choose one of {sorted(SCENES)}")
     for flag, value, low in (("--res", res, 8), ("--views", views, 1),
@@ -49,6 +51,11 @@ def _check_options(name: str, res: int, views: int, test_views: int, spp: int,
                              ("--seed", seed, 0)):
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
             raise InputError(f"{flag} {value!r}: must be an integer >= {low}")
+    if backdrop is not None and not (len(backdrop) == 3 and all(0 <= c <= 1 for c in backdrop)):
+        raise InputError(f"--backdrop {backdrop!r}: expected three values (R, G, B) in [0, 1]")
+    if distance is not None and not (1.8 <= distance <= 20):
+        raise InputError(f"--distance {distance!r}: must be in [1.8, 20] (the content reaches "
+                         "0.6 from the origin and must stay in view of a 40-degree camera)")
 
 
 def ensure_variant() -> None:
@@ -132,25 +139,42 @@ def to_rgba8(premultiplied: np.ndarray,  # [H, W, 3] linear premultiplied colour
     return np.concatenate([rgb8, a8[..., None]], -1).astype(np.uint8)
 
 
+def on_backdrop(rgba8: np.ndarray,  # [H, W, 4] uint8, straight alpha
+                backdrop) -> np.ndarray:  # [H, W, 4] uint8, alpha 255 everywhere
+    """The view composited on a backdrop colour (sRGB values in [0, 1]) as stored values,
+    with an opaque alpha channel: a capture of an object in front of a backdrop."""
+    a = rgba8[..., 3:].astype(np.float64) / 255.0
+    bg = np.asarray(backdrop, np.float64) * 255.0
+    rgb = np.round(rgba8[..., :3] * a + bg * (1.0 - a))
+    return np.concatenate([rgb, np.full_like(a, 255.0)], -1).astype(np.uint8)
+
+
 def _write_png(path: Path, rgba8: np.ndarray) -> None:
     atomic_write(path, lambda p: write_image(p, rgba8, extension=".png"))
 
 
 def make_scene(name: str, out: str | Path, res: int = 64, views: int = 32, test_views: int = 8,
-               spp: int = 64, seed: int = 0, variant: str | None = None) -> dict[str, Any]:
+               spp: int = 64, seed: int = 0, variant: str | None = None,
+               backdrop: Any = None, distance: float | None = None) -> dict[str, Any]:
     """Render toy scene ``name`` into ``out`` in the Blender/NeRF-synthetic format.
 
     ``res``: image width = height; ``views``/``test_views``: number of train/test views;
     ``spp``: samples per pixel of each pass; ``seed``: cameras, scene content and sampler seeds
-    all derive from it (same seed -> byte-identical files). Returns the train JSON record.
+    all derive from it (same seed -> byte-identical files). ``backdrop``: RGB in [0, 1]; the
+    views are stored composited on it with an opaque alpha (`on_backdrop`), as photos of an
+    object before a backdrop, instead of with their transparency. ``distance``: the cameras sit
+    within +- 5 % of this distance from the origin (default 2.6 to 3.0). Returns the train
+    JSON record.
     """
-    _check_options(name, res, views, test_views, spp, seed)
+    _check_options(name, res, views, test_views, spp, seed, backdrop, distance)
     from shells.device import mitsuba_variant
 
     mitsuba_variant(variant)
     out = Path(out)
     rng = np.random.default_rng([seed, 0])
-    poses = {"train": sample_poses(rng, views, even=True), "test": sample_poses(rng, test_views)}
+    radius = (2.6, 3.0) if distance is None else (0.95 * distance, 1.05 * distance)
+    poses = {"train": sample_poses(rng, views, radius, even=True),
+             "test": sample_poses(rng, test_views, radius)}
     render_seeds = {split: rng.integers(0, 2**31, size=len(p)) for split, p in poses.items()}
     spec = build(name, seed)
     scene = load_colour_scene(spec, res, spp)
@@ -161,7 +185,9 @@ def make_scene(name: str, out: str | Path, res: int = 64, views: int = 32, test_
         for k, c2w in enumerate(c2ws):
             alpha = opacity(spec, c2w, CAMERA_ANGLE_X, res)
             colour = _render_finite(scene, c2w, int(render_seeds[split][k]))
-            _write_png(out / split / f"r_{k}.png", to_rgba8(colour, alpha))
+            rgba8 = to_rgba8(colour, alpha)
+            _write_png(out / split / f"r_{k}.png",
+                       rgba8 if backdrop is None else on_backdrop(rgba8, backdrop))
             frames.append({"file_path": f"{split}/r_{k}", "transform_matrix": c2w.tolist()})
         records[split] = {"camera_angle_x": CAMERA_ANGLE_X, "aabb": AABB, "scene": spec.meta,
                           **({"unbounded": True} if spec.room_radius > 0 else {}),

@@ -44,14 +44,35 @@ def _box_hits(o: np.ndarray,  # [R, 3]
     return np.where(miss, np.nan, t0), np.where(miss, np.nan, t1)
 
 
+def _tube_hits(o: np.ndarray,  # [R, 3]
+               d: np.ndarray,  # [R, 3] unit
+               centre, radius: float, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """First and last distances where rays cross an open tube along z (a wall of zero
+    thickness, centre +- half in z; nan where they miss it)."""
+    oc = o - np.asarray(centre, np.float64)
+    a = d[:, 0] ** 2 + d[:, 1] ** 2
+    b = oc[:, 0] * d[:, 0] + oc[:, 1] * d[:, 1]
+    c = oc[:, 0] ** 2 + oc[:, 1] ** 2 - radius * radius
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disc = b * b - a * c
+        h = np.sqrt(np.where(disc > 0, disc, np.nan))
+        roots = np.stack([(-b - h) / a, (-b + h) / a], 1)  # [R, 2]
+    z = oc[:, 2, None] + roots * d[:, 2, None]
+    ok = (np.abs(z) <= half) & (roots > 0)
+    t = np.where(ok, roots, np.nan)
+    return np.fmin(t[:, 0], t[:, 1]), np.fmax(t[:, 0], t[:, 1])
+
+
 def first_hit(spec: SceneSpec,
               o: np.ndarray,  # [R, 3]
               d: np.ndarray,  # [R, 3] unit
               ) -> tuple[np.ndarray, np.ndarray]:  # t [R] (inf: none), object id [R] (-1: none)
-    """The first opaque object each ray hits: ids 0.. for `spec.spheres`, then `spec.boxes`."""
+    """The first opaque object each ray hits: ids 0.. for `spec.spheres`, then `spec.boxes`,
+    then `spec.cylinders`."""
     t_stop, ids = np.full(len(o), np.inf), np.full(len(o), -1)
     hits = [_sphere_hits(o, d, c, r) for c, r in spec.spheres]
     hits += [_box_hits(o, d, c, h) for c, h in spec.boxes]
+    hits += [_tube_hits(o, d, c, r, h) for c, r, h in spec.cylinders]
     for k, (t0, _) in enumerate(hits):
         closer = (t0 > 0) & (t0 < t_stop)
         t_stop, ids = np.where(closer, t0, t_stop), np.where(closer, k, ids)
@@ -71,7 +92,7 @@ def ray_transmittance(spec: SceneSpec,
     import drjit as dr
     import mitsuba as mi
 
-    t0, t1 = _sphere_hits(o, d, (0.0, 0.0, 0.0), spec.medium_radius)
+    t0, t1 = _sphere_hits(o, d, spec.medium_centre, spec.medium_radius)
     t0, t1 = np.maximum(t0, 0.0), np.fmin(t1, t_stop)
     live = np.flatnonzero(np.nan_to_num(t1 - t0, nan=0.0) > 0)
     if live.size == 0:
@@ -79,7 +100,8 @@ def ray_transmittance(spec: SceneSpec,
     dt = (t1[live] - t0[live]) / n_steps  # [L]
     s = t0[live, None] + dt[:, None] * (np.arange(n_steps) + 0.5)  # [L, S] midpoints
     p = o[live, None] + s[..., None] * d[live, None]  # [L, S, 3]
-    volume = mi.load_dict(density_volume(spec.density, spec.medium_radius))
+    volume = mi.load_dict(density_volume(spec.density, spec.medium_radius,
+                                         spec.medium_centre))
     it = dr.zeros(mi.Interaction3f, p.shape[0] * n_steps)
     it.p = mi.Point3f(*(p.reshape(-1, 3).T.astype(np.float32)))
     sigma = np.array(volume.eval_1(it), np.float64).reshape(-1, n_steps)  # [L, S]
@@ -115,7 +137,8 @@ def reference_opacity(spec: SceneSpec,
 
     absorber = mi.load_dict({
         "type": "heterogeneous", "scale": spec.sigma_scale, "albedo": {"type": "rgb", "value": 0.0},
-        "sigma_t": density_volume(spec.density, spec.medium_radius)}) if spec.density is not None else None
+        "sigma_t": density_volume(spec.density, spec.medium_radius, spec.medium_centre),
+    }) if spec.density is not None else None
     items = {}
     for key, entry in spec.content.items():
         if entry.get("type") in ("directional", "point", "constant", "envmap"):

@@ -165,6 +165,13 @@ def scene_parser() -> argparse.ArgumentParser:
     p.add_argument("--test-views", type=int, default=8, help="test views (default 8)")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     p.add_argument("--seed", type=int, default=0, help="RNG seed (default 0)")
+    p.add_argument("--backdrop", type=float, nargs=3, metavar=("R", "G", "B"), default=None,
+                   help="store the views composited on this backdrop colour (sRGB in [0, 1]) "
+                        "with an opaque alpha, like photos before a backdrop (default: "
+                        "transparent background)")
+    p.add_argument("--distance", type=float, default=None,
+                   help="cameras within 5%% of this distance from the origin (default 2.6 to "
+                        "3.0; lego's cameras are 4 box half-widths away)")
     return p
 
 
@@ -172,7 +179,7 @@ def _scene(args: argparse.Namespace) -> int:
     from scenes import make_scene
 
     make_scene(args.name, args.out, res=args.res, views=args.views, test_views=args.test_views,
-               spp=args.spp, seed=args.seed)
+               spp=args.spp, seed=args.seed, backdrop=args.backdrop, distance=args.distance)
     print(f"wrote {args.out}")
     return 0
 
@@ -245,11 +252,12 @@ def train_parser() -> argparse.ArgumentParser:
     p.add_argument("--iters", type=int, default=None, help="training steps (overrides config)")
     p.add_argument("--config", default=None, help="JSON config file (see shells/config.py)")
     p.add_argument("--preset", choices=["auto", "toy", "object", "paper"], default="auto",
-                   help="base configuration: 'toy' (small field, the 64x64 toy scenes), "
-                        "'object' (real objects on a CPU: empty-space skipping, hash grid "
-                        "sized from the images), 'paper' (paper sizes, GPU); 'auto' (default) "
-                        "picks paper on CUDA, else toy for images up to 96 px a side and "
-                        "object above")
+                   help="base configuration: 'object' (every capture on a CPU: empty-space "
+                        "skipping, hash grid sized from the cameras, schedule from the number "
+                        "of training pixels), 'toy' (the demo's short fixed schedule), 'paper' "
+                        "(paper sizes, GPU); 'auto' (default) picks paper on CUDA, else object."
+                        " Every preset trains on the images' own backdrop where it is baked "
+                        "in (RGB, or RGBA without transparency)")
     p.add_argument("--scene", choices=["auto", "bounded", "unbounded"], default="auto",
                    help="'unbounded': a capture with a room or landscape around the object; the "
                         "field lives in contracted space (Mip-NeRF 360) and its shells reach "
@@ -289,6 +297,10 @@ def _train(args: argparse.Namespace) -> int:
         print(f"test PSNR {summary['test']['psnr']:.2f} dB over {summary['test']['n_views']} "
               f"views ({summary['seconds']:.0f} s, {summary['rays_per_s']:.0f} rays/s); "
               f"checkpoint {args.out}/checkpoint.pt")
+    health = summary.get("health") or {}
+    if not health.get("ok", True) and distributed.launched_rank() == 0:
+        print(f"warning: stage 1 ended with a degenerate field ({', '.join(health['kinds'])};"
+              f" {args.out}/train_summary.json, health)", file=sys.stderr)
     return 0
 
 

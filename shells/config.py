@@ -23,7 +23,7 @@ from typing import Any
 
 from shells.errors import InputError
 
-COLOR_LOSSES = ("l1", "l2")  # train.color_loss, finetune.color_loss (`shells.loop.color_loss`)
+COLOR_LOSSES = ("l1", "l2", "rmse")  # train.color_loss, finetune.color_loss (`shells.loop.color_loss`)
 
 
 @dataclass
@@ -108,10 +108,12 @@ class TrainConfig:
     coarse_to_fine_iters: int = 0  # Neuralangelo: the hash levels are switched on one by one
     # over this many steps (0 = all levels from the start)
     coarse_to_fine_start: int = 4  # levels active at step 0 when coarse_to_fine_iters > 0
-    color_loss: str = "l1"  # the colour term: "l1" mean |error| (NeuS), "l2" mean squared error
+    color_loss: str = "l1"  # the colour term: "l1" mean |error| (NeuS), "l2" mean squared
+    # error, "rmse" its square root (`shells.loop.color_loss`)
     random_background: bool = False  # RGBA data: each training pixel on a random colour, drawn
     # per pixel and step, and its rays rendered on the same colour (Instant-NGP), so the field
-    # cannot keep unseen matter coloured like the background; no effect on data without alpha
+    # cannot keep unseen matter coloured like the background; no effect on data whose alpha
+    # holds no transparency (`shells.datasets.has_transparency`: the background is baked in)
     # or on an unbounded field (its rays all end on the far solid)
     cull_weight: float = 0.0  # samples whose compositing weight (from a pass without
     # gradient) is below this get no gradient pass: they keep their values, detached (nerfacc's
@@ -463,9 +465,36 @@ def finest_resolution(extent: float, focal_px: float, distance: float) -> int:
     return max(64, 2 ** math.ceil(math.log2(max(cells, 1.0))))
 
 
-def object_config(extent: float, focal_px: float, distance: float,
+BASE_PIXELS = 870_000  # training pixels of the object preset's full schedule (lego at 1/8:
+# 87 views of 100 x 100)
+MIN_ITERS = 1000  # the shortest stage-1 schedule of the object preset
+
+
+def pixel_share(pixels: float) -> float:
+    """sqrt(pixels / BASE_PIXELS), at most 1: the share of the object preset's full schedules
+    a data set of ``pixels`` training pixels gets."""
+    return min(1.0, math.sqrt(max(pixels, 1.0) / BASE_PIXELS))
+
+
+def object_iters(doublings: int, pixels: float) -> int:
+    """Stage-1 steps of the object preset: 3000 per doubling of the finest level above 256
+    (`object_config`), times `pixel_share`, rounded to 100, at least MIN_ITERS: a 64 px capture
+    of 40 views (164 k pixels) trains 1300 steps, one of 128 px and 48 views 2900, lego at 1/8
+    and 1/4 the full 3000 and 6000."""
+    return max(MIN_ITERS, 100 * round(30 * (1 + doublings) * pixel_share(pixels)))
+
+
+def object_finetune_iters(doublings: int, pixels: float) -> int:
+    """Stage-2 steps of the object preset: 1500, 1000 more per doubling above 512, times
+    `pixel_share`, rounded to 100, at least 500: on a 64 px capture (1500 steps are 37 passes
+    over its pixels) 1500 steps lost 0.35 dB to the stage-1 field's band render, 500 kept it."""
+    return max(500, 100 * round((5 + 10 * max(1, doublings)) * pixel_share(pixels)))
+
+
+def object_config(extent: float, focal_px: float, distance: float, pixels: float = BASE_PIXELS,
                   eikonal_weight: float = 0.005, cull_weight: float = 1e-4) -> Config:
-    """Real objects on the CPU (NeRF-synthetic, photos; 2 cores), sized from the data.
+    """Real objects on the CPU (NeRF-synthetic, photos; 2 cores), sized from the data: the
+    default for every capture on the CPU (`shells.training.preset_config`).
 
     The toy preset with stage 1's empty-space skipping (``sampler`` "occupancy"; the toy's 32 +
     16 samples per ray, now on the occupied span: 16 + 16 was 1.1 dB worse on lego at equal
@@ -473,14 +502,23 @@ def object_config(extent: float, focal_px: float, distance: float,
     above it), 2048 regulariser points; a hash grid whose finest
     level resolves half a pixel at the cameras' distance (`finest_resolution`: 256 for lego at
     1/8, 512 at 1/4), one level per doubling above the toy preset's 8 levels and a table twice
-    as large per doubling from 2^18; 3000 steps per doubling. The Eikonal weight is 0.005, not
+    as large per doubling from 2^18; 3000 steps per doubling, fewer for data sets of fewer
+    than BASE_PIXELS training ``pixels`` (`object_iters`). The Eikonal weight is 0.005, not
     the toy's 0.1: on lego at 1/4 the strong term held the hash grid back (1500 steps: 23.18 dB
     at 0.1, 25.6 at 0.02, 26.2 at 0.005), and the shells of the looser SDF still bound it (band
     >= full ray); unbounded captures pass 0.1 and also take the ray slope and the free-space
     term (`shells.training.preset_config`). Training pixels
-    of RGBA data go on random backgrounds (``random_background``; no effect without alpha): on
+    of RGBA data go on random backgrounds (``random_background``; only where the alpha channel
+    holds transparency, `shells.datasets.has_transparency`): on
     white alone, lego's field kept an unseen white solid under its base plate that the shells
     had to enclose (1/8: band 4.65 samples/px; on random backgrounds 2.05, and 0.2 dB higher).
+    The colour loss is the root mean squared error (``color_loss`` "rmse"; stage 2 keeps L1):
+    under L1 every pixel pulls with the same force, and on a 64 px capture a sphere 9 px
+    across and a cube beside larger objects never appeared (their pixels kept the background
+    colour, 0.68 mean |error|); under the squared error a pixel pulls in proportion to its
+    error and both were kept, but the term shrank beside the regularisers as the fit improved
+    (lego 1/8 lost 2 dB of stage 1); its square root keeps the squared error's weighting at
+    L1's size (BENCHMARKS.md, "Small captures with the default preset").
     Samples under 1e-4 of compositing weight get no gradient pass (``cull_weight``), and pixels
     with content whose rays cross no occupied cell are sampled on their whole chord
     (``occ_rescue``): lego 1/8 in 572 s instead of 665, at 31.06 dB instead of 30.98 (unbounded
@@ -498,16 +536,19 @@ def object_config(extent: float, focal_px: float, distance: float,
     # rays/s against 3.03x at 1024, 31.47 dB in 555 s against 30.96 in 413 s, about equal at
     # equal time; a second run: 3.54x; trained interleaved with it: 4.19x); above it 1024,
     # the setting measured there (lego 1/4: 6000 steps in 16.7 min, band 30.45 dB), 2048 not
-    cfg.train = dataclasses.replace(cfg.train, sampler="occupancy", iters=3000 * (1 + doublings),
+    cfg.train = dataclasses.replace(cfg.train, sampler="occupancy",
+                                    iters=object_iters(doublings, pixels),
                                     batch_rays=2048 if doublings == 0 else 1024,
                                     reg_points=2048, eikonal_weight=eikonal_weight,
                                     random_background=True, cull_weight=cull_weight,
+                                    color_loss="rmse",
                                     occ_rescue=0.05, checkpoint_every=500, log_every=50)
     cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
     # a longer stage 2 than the toy's 500 steps of 1024 rays: 1500 of 4096, and 1000 more per
-    # doubling above 512 (lego 1/4 after 40 min of stage 1: band 30.69 dB against 29.99, for
+    # doubling above 512, fewer for small data sets (`object_finetune_iters`) (lego 1/4 after 40 min of stage 1: band 30.69 dB against 29.99, for
     # 100 s of stage 2 instead of 21 s; lego 1/8: 31.86 against 31.03, 92 s instead of 20)
-    cfg.finetune = dataclasses.replace(cfg.finetune, iters=500 + 1000 * max(1, doublings),
+    cfg.finetune = dataclasses.replace(cfg.finetune,
+                                       iters=object_finetune_iters(doublings, pixels),
                                        batch_rays=4096)
     cfg.check("object preset")
     return cfg

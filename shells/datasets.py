@@ -516,3 +516,32 @@ def load_dataset(root: str | Path, split: str = "train", downscale: int = 1,
     return Dataset(images=images, alpha=alphas, cameras=cams,
                    aabb=fr.aabb, names=fr.names, root=fr.root, format=fr.format, split=split,
                    background=background, meta=fr.meta)
+
+
+TRANSPARENT_SHARE = 1e-3  # an alpha channel holds transparency when at least this share of the
+# pixels has alpha < 0.5; below it (alpha 255 everywhere, as in most photos of an object before
+# a backdrop, or a few stray pixels) the background is baked into the colours
+BACKDROP_SPREAD = 0.06  # a border pixel within this (max over RGB) of the border's median colour
+BACKDROP_SHARE = 0.8  # ... for at least this share of the border pixels: a uniform backdrop
+
+
+def has_transparency(alpha: torch.Tensor | None) -> bool:
+    """Whether an alpha channel ([N, H, W] in [0, 1], or None) holds transparency
+    (`TRANSPARENT_SHARE`): only then can a trainer recomposite its pixels on other colours."""
+    if alpha is None:
+        return False
+    return float((alpha < 0.5).float().mean()) >= TRANSPARENT_SHARE
+
+
+def backdrop_colour(images: torch.Tensor,  # [N, H, W, 3] in [0, 1]
+                    ) -> tuple[float, float, float] | None:
+    """The colour of a uniform backdrop baked into the images: the median of the pixels on
+    the images' border when at least BACKDROP_SHARE of them lie within BACKDROP_SPREAD of it;
+    None when the border is not uniform (a scene that fills the frame)."""
+    border = torch.cat([images[:, 0], images[:, -1], images[:, 1:-1, 0], images[:, 1:-1, -1]],
+                       1).reshape(-1, 3)
+    median = border.median(0).values
+    close = ((border - median).abs().amax(-1) <= BACKDROP_SPREAD).float().mean()
+    if float(close) < BACKDROP_SHARE:
+        return None
+    return tuple(round(float(c), 4) for c in median)

@@ -118,12 +118,16 @@ def psnr_of(mse: float) -> float:
 
 def color_loss(pred: torch.Tensor, target: torch.Tensor, kind: str) -> torch.Tensor:
     """The colour term of a stage's loss over [N, 3] pixels: "l1" the mean |pred - target|
-    (NeuS), "l2" the mean squared error (Instant-NGP; what PSNR scores)."""
+    (NeuS), "l2" the mean squared error (Instant-NGP; what PSNR scores), "rmse" its square
+    root (a pixel pulls in proportion to its error, as under "l2", with the overall size of
+    "l1": mean |e| / rms(e) <= 1)."""
     diff = pred - target
     if kind == "l1":
         return diff.abs().mean()
     if kind == "l2":
         return (diff * diff).mean()
+    if kind == "rmse":
+        return torch.sqrt((diff * diff).mean() + 1e-12)
     raise ValueError(f"unknown colour loss {kind!r}; valid: {COLOR_LOSSES}")
 
 

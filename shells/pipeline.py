@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from shells.config import override_config
+from shells.health import CAUSES, SOLID_SHARE, degenerate_grid
 from shells.errors import (WRITE_ERRNOS, InputError, Interrupted, commit_files, write_image,
                            write_json)
 from shells.metrics import PROTOCOL
@@ -82,9 +83,15 @@ def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
                                         sc.chunk, progress=progress)
     t_grid = time.perf_counter() - t0
     sim = field.similarity
+    _refuse_degenerate(run, f, field)
     shells = extract_shells(f, s, field.aabb.cpu().numpy(), sc, fixed_width=fixed_width,
                             roi=None if sim is None else (sim.centre, sim.radius),
                             progress=progress)
+    box = (field.aabb[1] - field.aabb[0]).double().prod().item()
+    if sim is None and shells.stats["volume_outer"] > SOLID_SHARE * box:
+        raise InputError(f"{run.checkpoint('stage1')}: the outer shell encloses "
+                         f"{shells.stats['volume_outer'] / box:.0%} of the scene box: a "
+                         f"degenerate field, not extracted; {CAUSES}")
     if field.similarity is not None:  # extracted in field space: the meshes back to the world
         _unbounded_to_world(shells, field)
     shells.stats["timings_s"]["sample_grid"] = t_grid
@@ -93,6 +100,20 @@ def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
     shells.stats["source"] = source  # which run and stage-1 step (shells.run.check_shells)
     write_shells(shells, run.shells)
     return shells.stats
+
+
+def _refuse_degenerate(run: RunDir, f: Any, field: Any) -> None:
+    """A one-line error (nothing written) when the grid of SDF samples ``f`` [R, R, R] is
+    degenerate (`shells.health.degenerate_grid`); an unbounded field is judged in the cube
+    around its ball of interest (the far solid fills the corners of its box)."""
+    f = torch.as_tensor(np.asarray(f))
+    if field.similarity is not None:
+        r = f.shape[0]
+        f = f[r // 4:r - r // 4, r // 4:r - r // 4, r // 4:r - r // 4]
+    why = degenerate_grid(f)
+    if why is not None:
+        raise InputError(f"{run.checkpoint('stage1')}: {why}: a degenerate field, not "
+                         f"extracted; {CAUSES}")
 
 
 def _unbounded_to_world(shells: Any, field: Any) -> None:
@@ -229,6 +250,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
                                 "no PSNR / SSIM"),
         "render_config": dataclasses.asdict(rc),
         **({"fps": fps} if path else {}),
+        "stage1_health": _stage1_health(run),
     }
     if shard is not None:
         if distributed.launched_world() > 1:
@@ -247,6 +269,16 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
         if named is exc:
             raise
         raise named from exc
+
+
+def _stage1_health(run: RunDir) -> dict[str, Any] | None:
+    """The stage-1 summary's health record (`shells.health.Stage1Health`), None if absent."""
+    import json
+
+    try:
+        return json.loads(run.summary("stage1").read_text()).get("health")
+    except (OSError, ValueError):
+        return None
 
 
 def _render_all(dj: Any, cams: Any, images: Any, rc: Any, mode: str, scene: Any, aabb: Any,

@@ -26,20 +26,23 @@ the run directory is read and written through `shells.run`.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
 import torch
+from tqdm import tqdm
 
 from shells import distributed
 from shells.config import Config, TrainConfig, object_config, toy_config
-from shells.datasets import (Dataset, load_dataset, read_frames, region_of_interest,
-                             says_unbounded)
+from shells.datasets import (Dataset, backdrop_colour, has_transparency, load_dataset,
+                             read_frames, region_of_interest, says_unbounded)
 from shells.errors import InputError, write_json
 from shells.contraction import Similarity
 from shells.fields.hashgrid import drjit_on_calling_thread
 from shells.fields.network import ShellField
 from shells.fields.neus import may_have_density
+from shells.health import Stage1Health, probe_points, psnr_floor, solid_share
 from shells.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
 from shells.metrics import psnr
 from shells.render.volume import SpanGrid, ray_aabb, render_volume_image, render_volume_rays
@@ -50,7 +53,6 @@ MAX_DRAWS = 8  # "occupancy" sampler: at most this many rounds of pixels drawn p
 
 PRESETS = ("auto", "toy", "object", "paper")
 SCENES = ("auto", "bounded", "unbounded")
-TOY_MAX_SIDE = 96  # "auto" on the CPU: images up to this many pixels a side get the toy preset
 
 
 def scene_similarity(data_dir: str | Path, scene: str = "auto") -> Similarity | None:
@@ -83,21 +85,44 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
                   device: torch.device, sim: Similarity | None = None) -> tuple[Config, str]:
     """The base config of ``shells-train --preset NAME`` and the preset's resolved name.
 
-    "auto": "paper" on CUDA; on the CPU "toy" for images of at most TOY_MAX_SIDE pixels a side
-    (the toy scenes), else "object", sized from the training cameras (`object_config`). With
-    ``sim`` (an unbounded scene) the object preset is sized for the field-space box (centre
-    +- 2 radius) and the toy preset's finest level doubles with one more level, so the ball of
-    interest gets the cells the toy box gets."""
+    "auto": "paper" on CUDA, else "object": one recipe for every capture on the CPU, sized from
+    the training cameras and images (`object_config`: the hash grid from the cameras, the
+    schedule from the number of training pixels). "toy" is the short fixed schedule of the
+    demo. With ``sim`` (an unbounded scene) the object preset is sized for the field-space box
+    (centre +- 2 radius) and the toy preset's finest level doubles with one more level, so the
+    ball of interest gets the cells the toy box gets. Every preset takes the data's own
+    background where the images have it baked in (`data_background`)."""
     if name not in PRESETS:
         raise InputError(f"--preset {name}: expected one of {list(PRESETS)}")
     if name == "paper" or (name == "auto" and device.type == "cuda"):
-        return Config(), "paper"
-    if name == "toy":
-        return _toy_for(sim), "toy"
+        cfg, resolved = Config(), "paper"
+    elif name == "toy":
+        cfg, resolved = _toy_for(sim), "toy"
+    else:
+        cfg, resolved = _object_for(data_dir, downscale, sim), "object"
+    background = data_background(data_dir, downscale)
+    if background is not None:
+        cfg.update({"data": {"background": list(background)}}, "the data's backdrop")
+    return cfg, resolved
+
+
+def data_background(data_dir: str | Path, downscale: int) -> tuple[float, float, float] | None:
+    """The background a run of this data set is trained and rendered on, if the images fix it:
+    None when their alpha channel holds transparency (they are composited on
+    ``data.background``, and may be recomposited on random colours) or when no uniform backdrop
+    shows on their border; else the backdrop's colour (`backdrop_colour`), baked into RGB files
+    and into RGBA files whose alpha is opaque. Rendered on another colour, a baked-in backdrop
+    can only be reproduced by matter filling the box."""
+    data = load_dataset(data_dir, "train", downscale=downscale)
+    if has_transparency(data.alpha):
+        return None
+    return backdrop_colour(data.images)
+
+
+def _object_for(data_dir: str | Path, downscale: int, sim: Similarity | None) -> Config:
     frames = read_frames(data_dir, "train")
     cams = frames.cameras.downscaled(downscale)
-    if name == "auto" and max(cams.width, cams.height) <= TOY_MAX_SIDE:
-        return _toy_for(sim), "toy"
+    pixels = float(len(cams) * cams.width * cams.height)
     if sim is not None:  # sized for the field-space box, centre +- 2 radius
         centre = torch.tensor(sim.centre, dtype=torch.float64)
         distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
@@ -106,23 +131,24 @@ def preset_config(name: str, data_dir: str | Path, downscale: int,
         # BENCHMARKS.md, tenth session)
         # and no culling (cull_weight): measured on lego only
         cfg = object_config(4.0 * sim.radius, float(cams.fx.double().median()), distance,
-                            eikonal_weight=TrainConfig.eikonal_weight, cull_weight=0.0)
+                            pixels, eikonal_weight=TrainConfig.eikonal_weight, cull_weight=0.0)
         # the opacity's slope from the ray's samples and the free-space term: on fox 1/8 the
         # best band after stage 2 when rays started at the ball, 22.20 dB against 22.15 full
         # ray (the slope alone, 8000 steps: 22.01 against 23.03; with the paper's opacity
         # stage 1 stalled near 15 dB; BENCHMARKS.md, eighteenth and fifteenth sessions);
         # rays start on the start sphere (`start_sphere`: 25.29 band, 29.04 full ray)
-        cfg.update({"train": {"slope": "ray", "free_weight": 0.1},
+        # and the L1 colour loss the preset was measured with on fox
+        cfg.update({"train": {"slope": "ray", "free_weight": 0.1, "color_loss": "l1"},
                     "field": {"near_radius": start_sphere(cams.c2w[:, :3, 3], sim)},
                     "shell": UNBOUNDED_SHELLS, "render": UNBOUNDED_BAND,
                     "finetune": {"shards": UNBOUNDED_SHARDS}},
                    "object preset, unbounded")
-        return cfg, "object"
+        return cfg
     box = frames.aabb.double()
     centre = 0.5 * (box[0] + box[1])
     distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
     focal = float(cams.fx.double().median())
-    return object_config(float((box[1] - box[0]).max()), focal, distance), "object"
+    return object_config(float((box[1] - box[0]).max()), focal, distance, pixels)
 
 
 # the unbounded object preset's shells: wide, for a soft field (fox 1/8: 67 % of the full-ray
@@ -482,31 +508,54 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
         write_run(run, data_dir, downscale, str(device), cfg)
     pixels = data.images.reshape(-1, 3).to(device)
     background = torch.tensor(cfg.data.background, device=device, dtype=torch.float32)
-    # random backgrounds where a background shows: RGBA data and a bounded field (every ray of
-    # an unbounded one ends on its far solid)
-    alpha = (data.alpha.reshape(-1).to(device) if tc.random_background and data.alpha is not None
-             and field.similarity is None else None)
+    # random backgrounds where a background shows: data whose alpha holds transparency (a
+    # backdrop baked into the colours can only be reproduced on its own colour) and a bounded
+    # field (every ray of an unbounded one ends on its far solid)
+    alpha = (data.alpha.reshape(-1).to(device) if tc.random_background
+             and has_transparency(data.alpha) and field.similarity is None else None)
     grid = (SpanGrid(field.aabb, tc.occ_resolution, tc.occ_k)
             if tc.sampler == "occupancy" else None)
     at = [0]  # the step being taken (before_step runs first)
+    health = Stage1Health(psnr_floor(pixels, background), tc.iters)
+    box = field.aabb
+    if field.similarity is not None:  # the cube around the ball of interest (no far solid)
+        box = 0.5 * (box[0] + box[1]) + 0.5 * (box - 0.5 * (box[0] + box[1]))
+    probe, probed = probe_points(box), {}
 
     def before(k: int) -> None:
         at[0] = k
         before_step(field, grid, tc, k)
 
+    def shard(gen: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
+        loss, rec = stage1_step(field, data, pixels, tc, background, gen, grid, at[0], alpha)
+        done = at[0] + 1
+        if done % tc.log_every == 0 or done == tc.iters:  # the health probe, once a step
+            if done not in probed:
+                with torch.no_grad():
+                    probed.clear()
+                    probed[done] = solid_share(field.geometry_field(probe)["sdf"])
+                for line in health.update(done, rec["psnr"], probed[done]):
+                    if w.main:
+                        tqdm.write(f"warning: {line}", file=sys.stderr)
+            rec["solid"] = probed[done]
+        return loss, rec
+
     with drjit_on_calling_thread():  # torch work between the lookups (its docstring)
-        summary = optimise(field, opt, cfg, Schedule.of("stage 1", tc),
-                           lambda gen: stage1_step(field, data, pixels, tc, background, gen,
-                                                   grid, at[0], alpha),
+        summary = optimise(field, opt, cfg, Schedule.of("stage 1", tc), shard,
                            run.checkpoint("stage1"), run.log("stage1"), device, resume=ckpt,
                            stop_at=stop_at, progress=progress, before_step=before, state=grid)
+        summary["health"] = health.summary()
+        summary["background"] = {"colour": list(cfg.data.background),
+                                  "random": alpha is not None}
         field.active_levels = None  # what the checkpoint's users evaluate: every level
-        if summary["finished"] and evaluate_test and w.main:
-            try:
-                test = load_dataset(data_dir, "test", downscale=downscale,
-                                    background=cfg.data.background)
-            except InputError:
-                test = None  # a data set without a test split: nothing to score
+        if summary["finished"] and w.main:  # the summary (with the health) of a whole run
+            test = None
+            if evaluate_test:
+                try:
+                    test = load_dataset(data_dir, "test", downscale=downscale,
+                                        background=cfg.data.background)
+                except InputError:
+                    pass  # a data set without a test split: nothing to score
             if test is not None:
                 summary["test"] = evaluate(field, test, tc, tc.eval_max_views, device, grid)
             write_json(run.summary("stage1"), summary)

@@ -6,7 +6,7 @@ dependency). Layers, bottom to top (a module may import only lower layers, or it
 subpackage at the same layer):
 
     0 errors
-    1 config, device, cameras, contraction, metrics, distributed
+    1 config, device, cameras, contraction, metrics, distributed, health
     2 datasets, camera_paths, scenes/
     3 fields/, levelset/, deform/, process_data
     4 render/
@@ -29,7 +29,7 @@ RANKS = {
     "shells.errors": 0,
     "shells.config": 1, "shells.device": 1, "shells.cameras": 1, "shells.contraction": 1,
     "shells.metrics": 1,
-    "shells.distributed": 1,
+    "shells.distributed": 1, "shells.health": 1,
     "shells.datasets": 2, "shells.camera_paths": 2, "scenes": 2,
     "shells.process_data": 3,
     "shells.fields": 3, "shells.levelset": 3, "shells.deform": 3,

@@ -297,6 +297,8 @@ def test_render_run_end_to_end(tmp_path, tiny_blender):
     (run / "shells").mkdir()
     trimesh.creation.icosphere(subdivisions=3, radius=0.6).export(run / "shells" / "outer.ply")
     trimesh.creation.icosphere(subdivisions=3, radius=0.4).export(run / "shells" / "inner.ply")
+    health = {"ok": False, "kinds": ["solid"], "warnings": ["..."]}
+    write_json(run / "train_summary.json", {"health": health})  # stage 1's verdict
 
     m = render_run(run, progress=False)
     out = run / "render-band"
@@ -309,6 +311,7 @@ def test_render_run_end_to_end(tmp_path, tiny_blender):
                 "n_views", "protocol"):
         assert key in saved, key
     assert (saved["width"], saved["height"], saved["mode"]) == (16, 16, "band")
+    assert saved["stage1_health"] == health  # carried into every render's metrics
     # nerfstudio ns-eval's names, top level and under "results" (its layout)
     for key in ("psnr", "ssim", "fps", "num_rays_per_sec"):
         assert saved[key] == saved["results"][key] and saved[f"{key}_std"] is not None, key

@@ -208,6 +208,22 @@ def test_coarse_to_fine_switches_levels_on():
     assert not torch.allclose(full, part)
 
 
+def test_object_preset_schedule_follows_the_training_pixels():
+    from shells.config import object_finetune_iters, object_iters
+
+    # 3000 steps per doubling at 870 000 pixels (lego 1/8: 87 views of 100 x 100) and above;
+    # sqrt of the pixel share below, at least 1000
+    assert object_iters(0, 87 * 100 * 100) == 3000 and object_iters(1, 87 * 200 * 200) == 6000
+    assert object_iters(0, 4e6) == 3000
+    assert object_iters(0, 40 * 64 * 64) == 1300  # sqrt(163 840 / 870 000) = 0.434
+    assert object_iters(0, 48 * 128 * 128) == 2900  # sqrt(786 432 / 870 000) = 0.951
+    assert object_iters(0, 10) == 1000
+    # stage 2: 1500 steps (1000 more per doubling above 512) on the same share, at least 500
+    assert object_finetune_iters(0, 87e4) == 1500 and object_finetune_iters(2, 87e4) == 2500
+    assert object_finetune_iters(0, 40 * 64 * 64) == 700  # 1500 x 0.434 = 651
+    assert object_finetune_iters(0, 10) == 500
+
+
 def test_auto_preset_follows_the_image_size(tmp_path):
     from tests.conftest import write_tiny_blender
     from shells.training import preset_config
@@ -215,19 +231,22 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     cpu = torch.device("cpu")
     small = write_tiny_blender(tmp_path / "small", res=64)
     big = write_tiny_blender(tmp_path / "big", res=128)
-    assert preset_config("auto", small, 1, cpu)[1] == "toy"
+    small_cfg, small_name = preset_config("auto", small, 1, cpu)  # one recipe at every size
+    assert small_name == "object" and small_cfg.train.sampler == "occupancy"
+    assert small_cfg.train.iters == 1000  # 4 views of 64 x 64: the shortest schedule
+    assert preset_config("object", small, 1, cpu) == (small_cfg, "object")  # the same on a CPU
     cfg, name = preset_config("auto", big, 1, cpu)
     assert name == "object" and cfg.train.sampler == "occupancy"
     # focal 128 / 2 / tan(0.3) = 206 px at distance 3.1 over a box of 2: 2 * 2 * 206 / 3.1 =
     # 266 cells -> 512; at downscale 2, 133 -> 256
     assert cfg.field.max_resolution == 512
     assert preset_config("auto", big, 2, cpu)[0].field.max_resolution == 256
-    assert preset_config("auto", big, 2, cpu)[1] == "toy"  # 64 px a side
+    assert preset_config("auto", big, 2, cpu)[1] == "object"  # 64 px a side
     half = preset_config("object", big, 2, cpu)[0]
     assert half.field.max_resolution == 256
-    # stage 2: 1500 steps of 4096 rays at 256 and at 512 (one doubling), 1000 more per doubling
-    assert (cfg.finetune.iters, cfg.finetune.batch_rays) == (1500, 4096)
-    assert (half.finetune.iters, half.finetune.batch_rays) == (1500, 4096)
+    # stage 2: steps of 4096 rays, 500 on these 4-view data sets (`object_finetune_iters`)
+    assert (cfg.finetune.iters, cfg.finetune.batch_rays) == (500, 4096)
+    assert (half.finetune.iters, half.finetune.batch_rays) == (500, 4096)
     # stage 1: 2048 crossing rays per step at the base size (256), 1024 above it
     assert (half.train.batch_rays, cfg.train.batch_rays) == (2048, 1024)
     assert preset_config("toy", big, 1, cpu)[0].finetune.iters == 500
@@ -240,6 +259,10 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     # and the ray slope with the free-space term (fox); a bounded object keeps the paper's
     unb = preset_config("object", big, 1, cpu, sim=sim)[0].train
     assert (unb.slope, unb.free_weight) == ("ray", 0.1)
+    # the root mean squared colour error for bounded objects (small objects are kept), L1 on
+    # fox and in stage 2
+    assert (cfg.train.color_loss, unb.color_loss, cfg.finetune.color_loss) == ("rmse", "l1",
+                                                                               "l1")
     assert (cfg.train.slope, cfg.train.free_weight) == ("normal", 0.0)
     # rays start 2 radii from the centre (contracted 1.5), or at 0.8 of the nearest camera's
     # distance (3.105 here) when that is less, never inside the ball (contracted 1)
@@ -480,8 +503,8 @@ def test_level_set_regulariser_points_come_from_weight_and_band(tiny_blender):
 
 
 def test_color_losses_hand_worked():
-    """'l1' is the mean |error| over pixels and channels, 'l2' the mean squared error, with
-    their gradients; any other name is a one-line config error in either stage."""
+    """'l1' is the mean |error| over pixels and channels, 'l2' the mean squared error, 'rmse'
+    its square root, with their gradients; any other name is a one-line config error in either stage."""
     from shells.loop import color_loss
 
     pred = torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.0, 0.2]], requires_grad=True)
@@ -492,6 +515,14 @@ def test_color_losses_hand_worked():
     assert l2.item() == pytest.approx((0.04 + 0.16 + 0.36) / 6)
     l2.backward()
     assert torch.allclose(pred.grad, 2 * (pred - target).detach() / 6)
+    # rmse: sqrt(0.56 / 6) = 0.3055; d/dpred = e / (6 rmse): the largest error pulls 3x the
+    # smallest, and the gradient's L1 size mean|e| / rmse = 0.2 / 0.3055 stays below 1
+    pred.grad = None
+    rmse = color_loss(pred, target, "rmse")
+    assert rmse.item() == pytest.approx(math.sqrt(0.56 / 6))
+    rmse.backward()
+    e = (pred - target).detach()
+    assert torch.allclose(pred.grad, e / (6 * math.sqrt(0.56 / 6)))
     cfg = toy_config()
     for section in ("train", "finetune"):
         cfg.update({section: {"color_loss": "l2"}}, "test")
