@@ -19,7 +19,7 @@ import numpy as np
 
 from scenes.cameras import pixel_rays_gl
 from scenes.dataset import CAMERA_ANGLE_X, SCENES, ensure_variant
-from scenes.opacity import first_hit
+from scenes.opacity import first_hit, opacity
 
 PARTS = ("sphere", "rod", "plate")  # the objects of `thin-parts`, in order
 
@@ -32,8 +32,6 @@ def part_scores(data: str | Path,  # a toy data set (make_scene)
                 # view i -> (rgb [H, W, 3], opacity [H * W]) of the test camera i
                 ) -> dict[str, dict[str, float]]:
     """{object name: {"pixels", "error", "opacity"}} over all test views, and "rest"."""
-    from scenes.opacity import opacity
-
     record = json.loads((Path(data) / "transforms_test.json").read_text())
     frames = record["frames"]
     ensure_variant()  # the scene description builds Mitsuba objects (the data set may have

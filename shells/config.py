@@ -492,7 +492,8 @@ def object_finetune_iters(doublings: int, pixels: float) -> int:
 
 
 def object_config(extent: float, focal_px: float, distance: float, pixels: float = BASE_PIXELS,
-                  eikonal_weight: float = 0.005, cull_weight: float = 1e-4) -> Config:
+                  eikonal_weight: float = 0.005, cull_weight: float = 1e-4,
+                  color_loss: str = "rmse") -> Config:
     """Real objects on the CPU (NeRF-synthetic, photos; 2 cores), sized from the data: the
     default for every capture on the CPU (`shells.training.preset_config`).
 
@@ -541,7 +542,7 @@ def object_config(extent: float, focal_px: float, distance: float, pixels: float
                                     batch_rays=2048 if doublings == 0 else 1024,
                                     reg_points=2048, eikonal_weight=eikonal_weight,
                                     random_background=True, cull_weight=cull_weight,
-                                    color_loss="rmse",
+                                    color_loss=color_loss,
                                     occ_rescue=0.05, checkpoint_every=500, log_every=50)
     cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
     # a longer stage 2 than the toy's 500 steps of 1024 rays: 1500 of 4096, and 1000 more per

@@ -129,16 +129,17 @@ def _object_for(data_dir: str | Path, downscale: int, sim: Similarity | None) ->
         # the default Eikonal weight, not the bounded preset's 0.005: on fox the weak term
         # gained 0.3 dB full ray but cost the band after stage 2 3.6 dB (16.4 against 20.0;
         # BENCHMARKS.md, tenth session)
-        # and no culling (cull_weight): measured on lego only
+        # and no culling (cull_weight): measured on lego only; and the L1 colour loss the
+        # preset was measured with on fox
         cfg = object_config(4.0 * sim.radius, float(cams.fx.double().median()), distance,
-                            pixels, eikonal_weight=TrainConfig.eikonal_weight, cull_weight=0.0)
+                            pixels, eikonal_weight=TrainConfig.eikonal_weight, cull_weight=0.0,
+                            color_loss="l1")
         # the opacity's slope from the ray's samples and the free-space term: on fox 1/8 the
         # best band after stage 2 when rays started at the ball, 22.20 dB against 22.15 full
         # ray (the slope alone, 8000 steps: 22.01 against 23.03; with the paper's opacity
         # stage 1 stalled near 15 dB; BENCHMARKS.md, eighteenth and fifteenth sessions);
         # rays start on the start sphere (`start_sphere`: 25.29 band, 29.04 full ray)
-        # and the L1 colour loss the preset was measured with on fox
-        cfg.update({"train": {"slope": "ray", "free_weight": 0.1, "color_loss": "l1"},
+        cfg.update({"train": {"slope": "ray", "free_weight": 0.1},
                     "field": {"near_radius": start_sphere(cams.c2w[:, :3, 3], sim)},
                     "shell": UNBOUNDED_SHELLS, "render": UNBOUNDED_BAND,
                     "finetune": {"shards": UNBOUNDED_SHARDS}},
@@ -520,7 +521,7 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
     box = field.aabb
     if field.similarity is not None:  # the cube around the ball of interest (no far solid)
         box = 0.5 * (box[0] + box[1]) + 0.5 * (box - 0.5 * (box[0] + box[1]))
-    probe, probed = probe_points(box), {}
+    probe, probed = probe_points(box), [0, 0.0]  # [step, solid share] of the last probe
 
     def before(k: int) -> None:
         at[0] = k
@@ -530,14 +531,13 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
         loss, rec = stage1_step(field, data, pixels, tc, background, gen, grid, at[0], alpha)
         done = at[0] + 1
         if done % tc.log_every == 0 or done == tc.iters:  # the health probe, once a step
-            if done not in probed:
+            if probed[0] != done:  # the step's first shard
                 with torch.no_grad():
-                    probed.clear()
-                    probed[done] = solid_share(field.geometry_field(probe)["sdf"])
-                for line in health.update(done, rec["psnr"], probed[done]):
+                    probed[:] = [done, solid_share(field.geometry_field(probe)["sdf"])]
+                for line in health.update(done, rec["psnr"], probed[1]):
                     if w.main:
                         tqdm.write(f"warning: {line}", file=sys.stderr)
-            rec["solid"] = probed[done]
+            rec["solid"] = probed[1]
         return loss, rec
 
     with drjit_on_calling_thread():  # torch work between the lookups (its docstring)
