@@ -1,6 +1,8 @@
-"""The paper's ablation (Table 4) on a toy scene: kernel, band and fine-tuning.
+"""The paper's ablation (Table 4) on a toy scene: test PSNR, SSIM, samples/pixel and ms/frame
+by kernel, band and fine-tuning.
 
-    python bench/ablation.py --scene core-fuzz --out bench/out/ablation-core-fuzz
+    python -m bench.ablation --scene core-fuzz --out bench/out/ablation-core-fuzz
+        [--iters N] [--finetune-iters N] [--res 64] [--views 32] [--append BENCHMARKS.md]
 
 Rows (all scored on the test split, same protocol as `shells-render`):
 - full ray, stage 1: the volumetric baseline (dense samples along the whole ray);
@@ -27,12 +29,13 @@ from pathlib import Path
 
 import torch
 
+from bench.report import command_line
 from scenes import make_scene
-from shells.config import toy_config
-from shells.finetune import finetune
+from shells.presets import toy_config
+from shells.train.stage2 import finetune
 from shells.pipeline import extract_run, render_run
 from shells.run import RunDir
-from shells.training import train
+from shells.train.stage1 import train
 
 
 def trained(data: Path, run: Path, global_kernel: bool, iters: int | None) -> Path:
@@ -46,8 +49,9 @@ def trained(data: Path, run: Path, global_kernel: bool, iters: int | None) -> Pa
 
 def later_stage_configs(out: Path) -> dict[str, Path]:
     """The toy preset's shell / finetune+render / render settings as `--config` files, passed
-    to every extraction, fine-tuning and render, so the table always reflects today's defaults
-    whatever preset a reused stage-1 checkpoint was trained with (they do not influence it)."""
+    to every extraction, fine-tuning and render, so the table always reflects the current
+    defaults whatever preset a reused stage-1 checkpoint was trained with (they do not
+    influence it)."""
     toy = toy_config().to_dict()
     files = {"extract": {"shell": toy["shell"]},
              "finetune": {"finetune": toy["finetune"], "render": toy["render"]},
@@ -155,7 +159,7 @@ def main(argv=None) -> int:
     (out / "ablation.json").write_text(json.dumps(rows, indent=1) + "\n")
     (out / "ablation.md").write_text(md + "\n")
     if args.append:
-        cmd = "python bench/ablation.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        cmd = command_line("ablation", argv)
         head = (f"\n### Ablation (Table 4), `{args.scene}` — {datetime.date.today()}\n\n"
                 f"Command: `{cmd}`  \nMachine: {platform.machine()}, {os.cpu_count()} CPU cores, "
                 f"torch {torch.__version__} (CPU), no GPU.\n\n")

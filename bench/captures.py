@@ -1,8 +1,9 @@
-"""Does the default preset work on any small object capture? The whole pipeline on toy captures.
+"""Does the default preset work on any small object capture? The whole pipeline on toy
+captures: per run stage-1 time, band and full-ray PSNR, and whether every object is kept.
 
-    python bench/captures.py --out OUT [--scenes white-tube off-centre] [--res 64 128]
+    python -m bench.captures --out OUT [--scenes white-tube off-centre] [--res 64 128]
                              [--backdrops none white] [--presets auto object] [--distance D]
-                             [--views 40] [--table BENCH.md]
+                             [--views 40] [--table BENCH.md] [--picture PNG]
 
 For each scene x resolution x background x preset (a run already in OUT is only scored
 again): the data set (`shells-scene NAME --res R
@@ -28,13 +29,10 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from scenes import make_scene  # noqa: E402
-from scenes.parts import objects_kept, part_scores  # noqa: E402
-from shells.datasets import has_transparency, load_dataset  # noqa: E402
-
-from report import emit_json  # noqa: E402
+from bench.report import emit_json
+from scenes import make_scene
+from scenes.parts import objects_kept, part_scores
+from shells.data.datasets import has_transparency, load_dataset
 
 BIN = Path(sys.executable).parent
 
@@ -139,7 +137,7 @@ def table(rows: list[dict]) -> str:
     return head + "\n".join(lines) + "\n"
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", required=True)
     p.add_argument("--scenes", nargs="+", default=["white-tube", "off-centre"])
@@ -154,7 +152,7 @@ def main() -> int:
     p.add_argument("--picture", default=None, metavar="PNG",
                    help="also write test views 0-3 of every run: ground truth, full ray "
                         "(stage 1), band after stage 2, from top to bottom; runs side by side")
-    a = p.parse_args()
+    a = p.parse_args(argv)
     out = Path(a.out)
     rows = []
     for i, res in enumerate(a.res):

@@ -1,6 +1,6 @@
 """Accuracy of `shells-process-data` poses against known ones (e.g. NeRF-synthetic lego).
 
-    python bench/colmap_accuracy.py DATA TRUE_TRANSFORMS [--json OUT]
+    python -m bench.colmap_accuracy DATA TRUE_TRANSFORMS [--json OUT]
         [--eval-run RUN --true-data DIR --downscale N]
 
 DATA is what shells-process-data wrote (transforms.json, images/NAME); TRUE_TRANSFORMS a
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from report import emit_json
+from bench.report import emit_json
 
 
 def _frames(path: Path) -> dict[str, np.ndarray]:
@@ -90,9 +90,9 @@ def eval_on_true_views(run: Path, true_data: Path, downscale: int,
 
     import torch
 
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
     from shells.run import load_field
-    from shells.training import evaluate
+    from shells.train.stage1 import evaluate
 
     s, rot, t = similarity
     field, cfg = load_field(run, stage="stage1")

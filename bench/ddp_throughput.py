@@ -1,6 +1,6 @@
 """Stage-1 throughput: N data-parallel processes x T threads each against 1 process x N*T threads.
 
-    python bench/ddp_throughput.py DATA [--iters 100] [--procs 2] [--out DIR] [--json FILE]
+    python -m bench.ddp_throughput DATA [--iters 100] [--procs 2] [--out DIR] [--json FILE]
 
 Trains the toy preset on DATA twice with the same global batch and the same ray shards (so the
 same computation): once as one process with ``OMP_NUM_THREADS = procs`` and once under
@@ -23,9 +23,8 @@ from pathlib import Path
 
 import torch
 
-from shells.config import toy_config
-
-from report import emit_json
+from bench.report import emit_json
+from shells.presets import toy_config
 
 
 def run(argv: list[str], threads: int) -> float:

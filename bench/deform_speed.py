@@ -1,7 +1,7 @@
-"""Cost of a deformed frame against the undeformed band frame of the same view (issue 15).
+"""Cost of a deformed frame against the undeformed band frame of the same view.
 
-    python bench/deform_speed.py RUN [--motion wind] [--sizes 128 256 512] [--zoom 1]
-        [--shells fine|lod] [--repeats 5] [--json OUT]
+    python -m bench.deform_speed RUN [--motion wind] [--sizes 128 256 512] [--zoom 1]
+        [--view 0] [--shells fine|lod] [--repeats 5] [--json OUT]
 
 RUN needs a cage (shells-cage). For each frame size, camera ``--view`` of the test split is
 rendered (a) undeformed in band mode and (b) with the cage posed by ``--motion`` at mid-
@@ -18,11 +18,8 @@ import platform
 import statistics
 import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from report import emit_json  # noqa: E402
+from bench.report import emit_json
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
     from shells.deform.motions import ANALYTIC, AssetFrame
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField

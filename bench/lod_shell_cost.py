@@ -1,4 +1,8 @@
-"""What a coarse shell costs in band samples, by how it is built (issue 18, shells-lod).
+"""What a coarse shell (shells-lod) costs in band samples, by how it is built: samples per
+covered pixel of each candidate inner or outer shell against the fine one.
+
+    python -m bench.lod_shell_cost RUN OUT [--shell inner|outer] [--staged D:R ...]
+                                   [--only NAME ...]
 
 The band renderer takes N = min(ceil(max(w - w_s, 0) / delta_s) + 1, N_max) samples in an
 interval of width w, so a coarse shell that sits farther from the fine one, or that leaves
@@ -14,14 +18,11 @@ Candidates (D in grid cells h, R the triangle ratio):
   where it fails its check; one distance grid for all of them), undecimated;
 * ``offset-D-xR``: that, then `decimate_staged` to 1/R of the fine triangles;
 * inner only: ``voxel-subK``, the grid cells of h / K that M- does not meet, in groups whose
-  winding number says inside, meshed half a cell in, undecimated (the construction before
-  the offset; kept here for the comparison), and ``voxel-sub1-x10``, that decimated as
-  `decimate_staged` does;
+  winding number says inside, meshed half a cell in, undecimated (a voxel construction, for
+  comparison with the offset), and ``voxel-sub1-x10``, that decimated as `decimate_staged`
+  does;
 * outer only: ``wrap-x10``, `wrap_outer` (CGAL's alpha wrap, ratio 10);
 * ``lod``: what shells-lod builds with the default parameters, ratio 10.
-
-    python bench/lod_shell_cost.py RUN OUT [--shell inner|outer] [--staged D:R ...]
-                                    [--only NAME ...]
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def voxel_interior(S: L.Mesh, origin: np.ndarray, h: float, depth: np.ndarray, s
     return np.asarray(m.vertices), np.asarray(m.faces, np.int32)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run")
     ap.add_argument("out")
@@ -78,7 +79,7 @@ def main() -> None:
                     help="offset-D-xR candidates, as D:R (default: inner 0.25:4 0.3:10 0.4:10, "
                          "outer 0.15:10 0.2:10 0.3:10)")
     ap.add_argument("--only", nargs="+", default=None, help="these candidates (and fine)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     run = RunDir(args.run)
     out = Path(args.out)
     scratch = out / "run"
@@ -146,8 +147,8 @@ def main() -> None:
         write_ply(scratch / "shells" / "lod" / f"{args.shell}.ply",
                   trimesh.Trimesh(*C, process=False))
         dest = out / f"render-{name}"
-        subprocess.run([sys.executable, "-c", "from shells.cli import render_main; raise SystemExit(render_main())",
-                        str(scratch), "--stage", "stage1", "--shells", "lod", "--out", str(dest)],
+        subprocess.run([str(Path(sys.executable).with_name("shells-render")), str(scratch),
+                        "--stage", "stage1", "--shells", "lod", "--out", str(dest)],
                        check=True, capture_output=True)
         m = json.loads((dest / "metrics.json").read_text())
         T = trimesh.Trimesh(*C, process=False)
@@ -163,8 +164,8 @@ def main() -> None:
                          m["samples_per_covered_pixel"]})
         print(json.dumps(rows[-1]), flush=True)
     base = rows[0]["samples_per_covered_pixel"]
-    print(f"| {args.shell} shell | triangles | contained | volume | components | M- verts > 3h away "
-          "| median distance (h) | samples / covered px | vs fine |")
+    print(f"| {args.shell} shell | triangles | contained | volume | components "
+          "| M- verts > 3h away | median distance (h) | samples / covered px | vs fine |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['name']} | {r['triangles']} | {r['contained']} | "

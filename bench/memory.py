@@ -1,6 +1,7 @@
-"""Peak memory of the two large jobs of issue 20: an 8K band render and a 512^3 extraction.
+"""Peak memory (and wall time) of the two large jobs: an 8K band render and a 512^3 extraction.
 
-    python bench/memory.py [--work DIR] [--width 7680 --height 4320] [--resolution 512]
+    python -m bench.memory [--work DIR] [--width 7680 --height 4320] [--resolution 512]
+                           [--skip render|extract]
 
 Makes a toy run in WORK (default /tmp/shells-memory): the `sphere` toy scene at 32x32 with one
 test view, a short stage 1 (toy preset, 30 steps), shells at the toy resolution. Then, each
@@ -47,20 +48,22 @@ def peak(cmd: list[str]) -> dict:
             "stdout": done.stdout.strip().splitlines()[-1:]}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--work", default="/tmp/shells-memory")
     p.add_argument("--width", type=int, default=7680)
     p.add_argument("--height", type=int, default=4320)
     p.add_argument("--resolution", type=int, default=512)
     p.add_argument("--skip", choices=["render", "extract"], default=None)
-    args = p.parse_args()
+    args = p.parse_args(argv)
     work = Path(args.work)
     data, run = work / "data", work / "run"
     if not (run / "shells" / "outer.ply").is_file():
         shutil.rmtree(work, ignore_errors=True)
-        sh = lambda *c: subprocess.run([str(BIN / c[0]), *map(str, c[1:])], check=True,  # noqa
-                                       capture_output=True)
+
+        def sh(*c) -> None:
+            subprocess.run([str(BIN / c[0]), *map(str, c[1:])], check=True, capture_output=True)
+
         sh("shells-scene", "sphere", "--out", data, "--res", 32, "--views", 8, "--test-views", 1,
            "--spp", 16)
         sh("shells-train", "--data", data, "--out", run, "--preset", "toy", "--iters", 30,

@@ -1,10 +1,16 @@
-"""Rendering speed of one trained run: narrow band vs full ray vs occupancy grid vs the floor.
+"""Rendering speed of one trained run: narrow band vs full ray vs occupancy grid vs the floor;
+also image-space refinement against the band render, and the fine against the LOD shells' cast.
 
-    python bench/render_speed.py RUN [--width 1920 --height 1080] [--views N]
-                                     [--append BENCHMARKS.md] [--out DIR]
+    python -m bench.render_speed RUN [--width 1920 --height 1080] [--views N] [--stage latest]
+                                     [--append BENCHMARKS.md] [--out DIR] [--config FILE]
+    python -m bench.render_speed RUN --refine [--levels 3] [--sizes 400 800]
+                                     [--view-ids 0 4 8 12] [--distances 0.6 0.8 1.0 1.4 2.0]
+                                     [--repeats 2] [--config FILE] [--json OUT]
+    python -m bench.render_speed RUN --cast-only [--width W --height H] [--json OUT]
 
 RUN is a run directory as `shells-train` + `shells-extract` leave it (checkpoint.pt, run.json,
-shells/outer.ply, shells/inner.ply). The first N views of the split (default: all) are rendered
+shells/outer.ply, shells/inner.ply); ``--config`` is a JSON file whose `render` section
+overrides the run's. By default the first N views of the split (default: all) are rendered
 with the same Dr.Jit field in four ways:
 
     band       adaptive shells: M+/M- depth peeling + Procedure 3 samples (the method)
@@ -22,6 +28,18 @@ numbers to OUT/render_speed.{md,json} (OUT default RUN/bench-speed-WxH), and wit
 appended to FILE together with the command, the device (Mitsuba variant) and the date. A plot of
 PSNR against ms/frame goes to OUT/render_speed.png (matplotlib when installed, else Pillow; it
 is skipped, with a message, when there are no PSNRs or neither library is available).
+
+``--refine``: for each square frame size and test view, the band render and the refined render
+(``--levels`` L, thresholds from the run's render config) are made alternately, ``--repeats``
+times after a warm-up, and compared: PSNR and SSIM of the refined frame against the band frame,
+test PSNR of both against the ground truth at that size (when the size divides the native
+one), the share of covered pixels evaluated, and the time ratio (medians). ``--distances``
+then moves the camera of the first view along its axis to these multiples of its distance from
+the scene centre, at the largest size, and reports the time ratio at each. Prints JSON.
+
+``--cast-only``: the depth-peeled interval cast (`ShellScene.intervals`, the band renderer's
+and stage 2's) of every pixel of the test views through the fine shells and through their LOD
+(shells-lod), median of 5 warm repeats; prints JSON.
 """
 
 from __future__ import annotations
@@ -31,19 +49,23 @@ import dataclasses
 import datetime
 import json
 import math
+import os
 import platform
-import shlex
 import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import drjit as dr
+import torch
 
+from bench.report import command_line, emit_json
+from shells.config import read_config_file
 from shells.errors import InputError
 from shells.pipeline import check_run
-from shells.render.views import render_views
+from shells.render.views import render_view, render_views
 from shells.run import RunDir, load_field, load_shells
 
 LABELS = {
@@ -181,32 +203,42 @@ def _plot_pillow(pts: dict[str, dict[str, Any]], floor_ms: float | None, path: P
     img.save(path)
 
 
+def open_run(run_dir: Path, stage: str = "latest", overrides: dict[str, Any] | None = None,
+             split: str = "test") -> SimpleNamespace:
+    """RUN's field and config (render section updated by ``overrides``), its Mitsuba variant, its
+    fine shells and the split at the run's resolution (every mode's starting point)."""
+    from shells.data.datasets import load_dataset
+    from shells.device import mitsuba_variant
+
+    run = RunDir(run_dir)
+    meta = check_run(run, "band")  # needs run.json, a checkpoint and the outer shell
+    field, cfg = load_field(run.root, device="cpu", stage=stage)
+    cfg.update({"render": overrides or {}}, "bench.render_speed options")
+    rc, bg = cfg.render, tuple(cfg.data.background)
+    variant = mitsuba_variant(rc.variant)
+    data = load_dataset(meta["data"], split, downscale=int(meta["downscale"]), background=bg)
+    return SimpleNamespace(run=run, meta=meta, field=field, rc=rc, bg=bg, variant=variant,
+                           scene=load_shells(run, variant), data=data)
+
+
 def run_bench(run_dir: Path, split: str = "test", width: int | None = None,
               height: int | None = None, views: int | None = None, stage: str = "latest",
               out: Path | None = None, overrides: dict[str, Any] | None = None,
               progress: bool = False) -> dict[str, Any]:
     """Render the views in all four ways; returns rows {mode: metrics} plus run facts."""
-    from shells.datasets import load_dataset
-    from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
     from shells.levelset.mesh import load_ply
     from shells.render.occupancy import grid_summary, march_step, occupancy_grid
     from shells.render.raycast import ShellScene
 
-    run = RunDir(run_dir)
-    meta = check_run(run, "band")  # needs run.json, a checkpoint and the outer shell
-    field, cfg = load_field(run.root, device="cpu", stage=stage)
-    cfg.update({"render": overrides or {}}, "bench/render_speed.py options")
-    rc, bg = cfg.render, tuple(cfg.data.background)
-    variant = mitsuba_variant(rc.variant)
-    scene = load_shells(run, variant)
+    r = open_run(run_dir, stage, overrides, split)
+    run, rc, bg, variant, data = r.run, r.rc, r.bg, r.variant, r.data
     outer_only = ShellScene(load_ply(run.outer), None, variant)
-    data = load_dataset(meta["data"], split, downscale=int(meta["downscale"]), background=bg)
     n = len(data.cameras) if not views else min(int(views), len(data.cameras))
     cams = data.cameras[:n].resized(width, height)
     same_size = (cams.width, cams.height) == (data.cameras.width, data.cameras.height)
     images = data.images[:n] if same_size else None
-    dj = DrJitField(field)
+    dj = DrJitField(r.field)
     out = Path(out) if out else run.root / f"bench-speed-{cams.width}x{cams.height}"
 
     dr.sync_thread()
@@ -218,7 +250,7 @@ def run_bench(run_dir: Path, split: str = "test", width: int | None = None,
     rows: dict[str, dict[str, Any]] = {}
     for mode in ("band", "full", "occupancy"):
         (out / mode).mkdir(parents=True, exist_ok=True)
-        rows[mode] = render_views(dj, cams, images, rc, mode, scene if mode == "band" else None,
+        rows[mode] = render_views(dj, cams, images, rc, mode, r.scene if mode == "band" else None,
                                   data.aabb, out / mode, progress, bg)
     rows["floor"] = time_floor(outer_only, cams)
     return {
@@ -229,37 +261,10 @@ def run_bench(run_dir: Path, split: str = "test", width: int | None = None,
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("run", type=Path)
-    p.add_argument("--width", type=int, default=None, help="default: the data set's")
-    p.add_argument("--height", type=int, default=None, help="default: the data set's")
-    p.add_argument("--views", type=int, default=None, help="first N views (default: all)")
-    p.add_argument("--split", default="test")
-    p.add_argument("--stage", default="latest", choices=["latest", "stage1", "stage2"])
-    p.add_argument("--out", type=Path, default=None, help="default: RUN/bench-speed-WxH")
-    p.add_argument("--append", type=Path, default=None, help="append the table to this file")
-    p.add_argument("--full-samples", type=int, default=None, help="override render.full_samples")
-    p.add_argument("--occ-resolution", type=int, default=None, help="override occ_resolution")
-    p.add_argument("--occ-k", type=float, default=None, help="override occ_k")
-    p.add_argument("--occ-chunk", type=int, default=None, help="override occ_chunk")
-    p.add_argument("--progress", action="store_true")
-    args = p.parse_args(argv)
-    overrides = {k: v for k, v in (("full_samples", args.full_samples),
-                                   ("occ_resolution", args.occ_resolution),
-                                   ("occ_k", args.occ_k), ("occ_chunk", args.occ_chunk))
-                 if v is not None}
-
-    try:
-        res = run_bench(args.run, args.split, args.width, args.height, args.views, args.stage,
-                        args.out, overrides, args.progress)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+def report_bench(res: dict[str, Any], command: str, append: Path | None) -> None:
+    """Print the four-way table with its notes; write OUT/render_speed.{md,json,png}."""
     rows, out, rc = res["rows"], res["out"], res["render_config"]
     date = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
-    argv = argv if argv is not None else sys.argv[1:]
-    command = "python bench/render_speed.py " + " ".join(shlex.quote(a) for a in argv)
     g = res["grid"]
     notes = [
         f"- command: `{command}`",
@@ -288,10 +293,160 @@ def main(argv: list[str] | None = None) -> int:
     (out / "render_speed.json").write_text(json.dumps(dump, indent=1, default=str) + "\n")
     print(plot(rows, out / "render_speed.png",
                f"{Path(res['run']).name} {res['width']}x{res['height']} {res['variant']}"))
-    if args.append:
-        with open(args.append, "a") as fh:
+    if append:
+        with open(append, "a") as fh:
             fh.write("\n" + section)
-        print(f"appended to {args.append}")
+        print(f"appended to {append}")
+
+
+def _rounded(row: dict[str, Any]) -> str:
+    return json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()})
+
+
+def refine_bench(args: argparse.Namespace, overrides: dict[str, Any]) -> dict[str, Any]:
+    """``--refine`` of the module docstring: refined against band frames, rows and summary."""
+    from shells.data.camera_paths import scene_frame
+    from shells.data.datasets import load_dataset, read_frames
+    from shells.fields.drjit_field import DrJitField
+    from shells.metrics import psnr, ssim
+
+    r = open_run(args.run, args.stage, overrides)
+    band_cfg = dataclasses.replace(r.rc, refine_levels=0)
+    ref_cfg = dataclasses.replace(r.rc, refine_levels=args.levels)
+    dj, small, data_dir = DrJitField(r.field), r.data, r.meta["data"]
+    native = read_frames(data_dir, "test").cameras.width
+
+    def pair(cams, i):
+        times = {"band": [], "refine": []}
+        for k in range(args.repeats + 1):
+            b, _, tb, _ = render_view(dj, cams, i, band_cfg, "band", r.scene, small.aabb, r.bg)
+            f, _, tf, counts = render_view(dj, cams, i, ref_cfg, "band", r.scene, small.aabb,
+                                           r.bg)
+            if k:
+                times["band"].append(tb)
+                times["refine"].append(tf)
+        tb, tf = statistics.median(times["band"]), statistics.median(times["refine"])
+        return b, f, tb, tf, counts
+
+    rows = []
+    for size in args.sizes:
+        gt = None
+        if native % size == 0:
+            gt = load_dataset(data_dir, "test", downscale=native // size, background=r.bg)
+        cams = small.cameras.resized(size, size)
+        for i in args.view_ids:
+            b, f, tb, tf, counts = pair(cams, i)
+            rows.append({"size": size, "view": i, "band_ms": 1e3 * tb, "refine_ms": 1e3 * tf,
+                         "ratio": tf / tb, "psnr_vs_band": psnr(f, b), "ssim_vs_band": ssim(f, b),
+                         "evaluated_share": counts["evaluated"] / max(counts["covered"], 1),
+                         "test_psnr_band": psnr(b, gt.images[i]) if gt is not None else None,
+                         "test_psnr_refine": psnr(f, gt.images[i]) if gt is not None else None})
+            print(_rounded(rows[-1]), flush=True)
+    distances = []
+    if args.distances:
+        size = max(args.sizes)
+        cams = small.cameras.resized(size, size)[args.view_ids[0]:args.view_ids[0] + 1]
+        centre = torch.as_tensor(scene_frame(cams, small.aabb)[0], dtype=torch.float32)
+        base = cams.c2w.clone()
+        for f in args.distances:
+            cams.c2w = base.clone()
+            cams.c2w[0, :3, 3] = centre + f * (base[0, :3, 3] - centre)
+            _, _, tb, tf, counts = pair(cams, 0)
+            distances.append({"distance_factor": f, "band_ms": 1e3 * tb, "refine_ms": 1e3 * tf,
+                              "ratio": tf / tb, "evaluated_share":
+                                  counts["evaluated"] / max(counts["covered"], 1),
+                              "covered": counts["covered"]})
+            print(_rounded(distances[-1]), flush=True)
+    summary = {}
+    for size in args.sizes:
+        rs = [x for x in rows if x["size"] == size]
+        keys = ["band_ms", "refine_ms", "ratio", "psnr_vs_band", "ssim_vs_band",
+                "evaluated_share"]
+        if rs[0]["test_psnr_band"] is not None:
+            keys += ["test_psnr_band", "test_psnr_refine"]
+        summary[str(size)] = {k: statistics.mean(x[k] for x in rs) for k in keys}
+    return {"run": str(r.run.root), "levels": args.levels,
+            "render_config": dataclasses.asdict(ref_cfg), "views": args.view_ids,
+            "summary": summary, "rows": rows, "distances": distances,
+            "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores, {r.variant}, "
+                       f"torch threads {torch.get_num_threads()}"}
+
+
+def cast_ms(scene: Any, o: torch.Tensor, d: torch.Tensor, dp_max: int, repeats: int = 5
+            ) -> float:
+    """Median warm ms of the depth-peeled interval cast of rays (o, d) through ``scene``."""
+    times = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        iv = scene.intervals(o, d, dp_max)
+        dr.eval(iv.enter, iv.exit, iv.count, iv.t_inner)
+        dr.sync_thread()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times[1:])
+
+
+def cast_bench(args: argparse.Namespace, overrides: dict[str, Any]) -> dict[str, Any]:
+    """``--cast-only`` of the module docstring: the fine and the LOD shells' cast."""
+    r = open_run(args.run, args.stage, overrides)
+    cams = r.data.cameras.resized(args.width, args.height)
+    rays = [cams.pixel_rays(i)[:2] for i in range(len(cams))]
+    o = torch.cat([x[0].reshape(-1, 3) for x in rays])
+    d = torch.cat([x[1].reshape(-1, 3) for x in rays])
+    out = {"run": str(r.run.root), "rays": int(len(o)), "width": cams.width,
+           "height": cams.height, "dp_max": r.rc.dp_max}
+    for which in ("fine", "lod"):
+        scene = r.scene if which == "fine" else load_shells(r.run, r.variant, which)
+        out[f"{which}_ms"] = cast_ms(scene, o, d, r.rc.dp_max)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run", type=Path)
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--refine", action="store_true",
+                      help="image-space refinement against the band render")
+    mode.add_argument("--cast-only", action="store_true",
+                      help="the interval cast alone, fine against LOD shells")
+    p.add_argument("--width", type=int, default=None, help="default: the data set's")
+    p.add_argument("--height", type=int, default=None, help="default: the data set's")
+    p.add_argument("--views", type=int, default=None, help="first N views (default: all)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--stage", default="latest", choices=["latest", "stage1", "stage2"])
+    p.add_argument("--out", type=Path, default=None, help="default: RUN/bench-speed-WxH")
+    p.add_argument("--append", type=Path, default=None, help="append the table to this file")
+    p.add_argument("--config", default=None,
+                   help="JSON file whose render section overrides the run's")
+    p.add_argument("--full-samples", type=int, default=None, help="override render.full_samples")
+    p.add_argument("--occ-resolution", type=int, default=None, help="override occ_resolution")
+    p.add_argument("--occ-k", type=float, default=None, help="override occ_k")
+    p.add_argument("--occ-chunk", type=int, default=None, help="override occ_chunk")
+    p.add_argument("--progress", action="store_true")
+    g = p.add_argument_group("--refine")
+    g.add_argument("--levels", type=int, default=3, help="render.refine_levels of the refined")
+    g.add_argument("--sizes", type=int, nargs="+", default=[400, 800], help="square sizes")
+    g.add_argument("--view-ids", type=int, nargs="+", default=[0, 4, 8, 12])
+    g.add_argument("--distances", type=float, nargs="*", default=[0.6, 0.8, 1.0, 1.4, 2.0])
+    g.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--json", default=None, help="--refine, --cast-only: also write JSON here")
+    args = p.parse_args(argv)
+    overrides = read_config_file(args.config).get("render", {}) if args.config else {}
+    overrides.update({k: v for k, v in (("full_samples", args.full_samples),
+                                        ("occ_resolution", args.occ_resolution),
+                                        ("occ_k", args.occ_k), ("occ_chunk", args.occ_chunk))
+                      if v is not None})
+    try:
+        if args.refine:
+            emit_json(refine_bench(args, overrides), args.json)
+        elif args.cast_only:
+            emit_json(cast_bench(args, overrides), args.json)
+        else:
+            report_bench(run_bench(args.run, args.split, args.width, args.height, args.views,
+                                   args.stage, args.out, overrides, args.progress),
+                         command_line("render_speed", argv), args.append)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -1,7 +1,7 @@
 """Ctrl-C at random moments of `shells-render`, many times: every run must end in one of the
 two promised states, with no traceback and no hidden file (staging folder, lock) left.
 
-    python bench/sigint_stress.py RUN --runs 40 --seed 5 --from 0.55 --to 0.95
+    python -m bench.sigint_stress RUN [--runs 40] [--seed 5] [--from 0.55] [--to 0.95]
 
 RUN is a run with shells. Each trial first writes an older 8x8 render into the output folder,
 then starts a 24x24 render of the training views over it and sends SIGINT after a delay drawn
@@ -33,14 +33,14 @@ def _state(folder: Path) -> dict[str, object]:
                if p.suffix == ".png"}}
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("run")
     p.add_argument("--runs", type=int, default=40)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--from", dest="lo", type=float, default=0.55)
     p.add_argument("--to", dest="hi", type=float, default=0.95)
-    args = p.parse_args()
+    args = p.parse_args(argv)
     exe = str(Path(sys.executable).with_name("shells-render"))
     root = Path(tempfile.mkdtemp(prefix="sigint-stress-"))
     new = [exe, args.run, "--split", "train", "--width", "24", "--height", "24", "--out"]

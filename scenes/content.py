@@ -157,7 +157,7 @@ def thin_parts(rng: np.random.Generator) -> SceneSpec:
 
 def unbounded(rng: np.random.Generator) -> SceneSpec:
     """`unbounded`: the `sphere` inside a textured, self-lit room sphere of radius
-    ROOM_RADIUS (issue 14's toy unbounded scene). Every ray ends on something (alpha 1
+    ROOM_RADIUS (the toy unbounded scene). Every ray ends on something (alpha 1
     everywhere), and the room lies far outside the region the cameras look at: a bounded field
     cannot hold it, a contracted one can. The room's surface has a null BSDF, so the
     directional lights still reach the ball through it."""

@@ -25,7 +25,8 @@ from scenes import content
 from scenes.cameras import gl_to_mitsuba, sample_poses
 from scenes.content import SceneSpec
 from scenes.opacity import opacity
-from shells.errors import InputError, atomic_write, write_image, write_json
+from shells.errors import InputError
+from shells.files import atomic_write, write_image, write_json
 
 Builder = Callable[[np.random.Generator], SceneSpec]
 SCENES: dict[str, Builder] = {

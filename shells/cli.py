@@ -4,7 +4,7 @@ Every command turns an `InputError`, or a write the system refuses (disk full, a
 folder), into one line on stderr and exit status 2; SIGINT / SIGTERM end it with status 130,
 leaving its outputs as they were (or, for training, resumable). The commands that write a run
 (shells-train, -extract, -finetune) hold its lock file, and shells-render that of its output
-folder: a second command on the same run is refused at once (`shells.run.lock`).
+folder: a second command on the same run is refused at once (`shells.files.lock`).
 """
 
 from __future__ import annotations
@@ -12,14 +12,16 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import inspect
 import os
 import signal
 import sys
 import traceback
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
-from shells.errors import (InputError, Interrupted, final_commit, late_signal, uninterrupted,
-                           write_failure)
+from shells.errors import InputError, Interrupted, write_failure
+from shells.files import final_commit, late_signal, uninterrupted
 
 
 class _Lazy:
@@ -128,9 +130,9 @@ def _leave_job(status: int) -> None:
 
 
 def _locked(path: object, command: str):  # -> context manager
-    """The lock file ``path`` of an output folder (`shells.run.lock`), held by rank 0 of a
+    """The lock file ``path`` of an output folder (`shells.files.lock`), held by rank 0 of a
     torchrun job (its other ranks write nothing)."""
-    from shells.run import lock
+    from shells.files import lock
 
     return lock(path, command) if distributed.launched_rank() == 0 else contextlib.nullcontext()
 
@@ -147,17 +149,36 @@ def _terminate(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+
+# --------------------------------------------------------------------------------------------
+# Arguments several commands share
+# --------------------------------------------------------------------------------------------
+
+def _stage_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest",
+                   help="which checkpoint: stage 2 when present (latest, default), or explicit")
+
+
+def _shells_arg(p: argparse.ArgumentParser, what: str = "which shells: RUN/shells (fine, "
+                "default) or RUN/shells/lod (shells-lod)") -> None:
+    p.add_argument("--shells", choices=["fine", "lod"], default="fine", help=what)
+
+
+def _config_arg(p: argparse.ArgumentParser, sections: str, example: str) -> None:
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help=f"JSON file with {sections} overriding the run's settings (see "
+                        f"docs/configuration.md), e.g. {example}")
+
+
 # --------------------------------------------------------------------------------------------
 # shells-scene
 # --------------------------------------------------------------------------------------------
 
-def scene_parser() -> argparse.ArgumentParser:
+def _scene_args(p: argparse.ArgumentParser) -> None:
+    """Render a toy data set with Mitsuba in the Blender/NeRF-synthetic format (RGBA PNGs,
+    transforms_train.json, transforms_test.json)."""
     from scenes import SCENES
 
-    p = argparse.ArgumentParser(
-        prog="shells-scene",
-        description="Render a toy data set with Mitsuba in the Blender/NeRF-synthetic format "
-                    "(RGBA PNGs, transforms_train.json, transforms_test.json).")
     p.add_argument("name", choices=sorted(SCENES), help="which toy scene")
     p.add_argument("--out", required=True, help="output directory (created)")
     p.add_argument("--res", type=int, default=64, help="image width and height (default 64)")
@@ -172,7 +193,6 @@ def scene_parser() -> argparse.ArgumentParser:
     p.add_argument("--distance", type=float, default=None,
                    help="cameras within 5%% of this distance from the origin (default 2.6 to "
                         "3.0; lego's cameras are 4 box half-widths away)")
-    return p
 
 
 def _scene(args: argparse.Namespace) -> int:
@@ -184,20 +204,14 @@ def _scene(args: argparse.Namespace) -> int:
     return 0
 
 
-def scene_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_scene, scene_parser(), argv)
-
-
 # --------------------------------------------------------------------------------------------
 # shells-process-data
 # --------------------------------------------------------------------------------------------
 
-def process_data_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="shells-process-data",
-        description="Camera poses for a folder of photos by structure from motion (COLMAP via "
-                    "pycolmap, on the CPU), written as an Instant-NGP transforms.json with the "
-                    "photos in DATA/images; then shells-train --data DATA.")
+def _process_data_args(p: argparse.ArgumentParser) -> None:
+    """Camera poses for a folder of photos by structure from motion (COLMAP via pycolmap, on
+    the CPU), written as an Instant-NGP transforms.json with the photos in DATA/images; then
+    shells-train --data DATA."""
     p.add_argument("images", help="folder of photos (.png / .jpg) of one scene, one camera")
     p.add_argument("--out", required=True, help="data set folder to create")
     p.add_argument("--downscale", type=int, default=1,
@@ -218,11 +232,10 @@ def process_data_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-guided-matching", dest="guided_matching", action="store_false",
                    help="skip the second, guided matching pass along each verified pair's "
                         "epipolar geometry (matching 1.5-3x faster; fewer views may register)")
-    return p
 
 
 def _process_data(args: argparse.Namespace) -> int:
-    from shells.process_data import process_data
+    from shells.data.colmap import process_data
 
     s = process_data(args.images, args.out, args.downscale, args.matching, args.camera_model,
                      args.max_error, args.guided_matching)
@@ -233,24 +246,18 @@ def _process_data(args: argparse.Namespace) -> int:
     return 0
 
 
-def process_data_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_process_data, process_data_parser(), argv)
-
-
 # --------------------------------------------------------------------------------------------
 # shells-train, shells-extract, shells-finetune, shells-render
 # --------------------------------------------------------------------------------------------
 
-def train_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="shells-train",
-        description="Stage 1: train the hash-grid SDF field with a spatially varying kernel by "
-                    "full-ray NeuS volume rendering.")
+def _train_args(p: argparse.ArgumentParser) -> None:
+    """Stage 1: train the hash-grid SDF field with a spatially varying kernel by full-ray NeuS
+    volume rendering."""
     p.add_argument("--data", default=None,
                    help="data set directory (Blender or Instant-NGP); not needed with --resume")
     p.add_argument("--out", required=True, help="run directory (created)")
     p.add_argument("--iters", type=int, default=None, help="training steps (overrides config)")
-    p.add_argument("--config", default=None, help="JSON config file (see shells/config.py)")
+    p.add_argument("--config", default=None, help="JSON config file (see docs/configuration.md)")
     p.add_argument("--preset", choices=["auto", "toy", "object", "paper"], default="auto",
                    help="base configuration: 'object' (every capture on a CPU: empty-space "
                         "skipping, hash grid sized from the cameras, schedule from the number "
@@ -268,28 +275,16 @@ def train_parser() -> argparse.ArgumentParser:
                    help="torch device (default: cuda if available)")
     p.add_argument("--downscale", type=int, default=1, help="downscale images by this factor")
     p.add_argument("--resume", action="store_true", help="continue from RUN's last checkpoint")
-    return p
 
 
 def _train(args: argparse.Namespace) -> int:
-    from shells.config import Config, load_config
     from shells.device import torch_device
-    from shells.training import preset_config, scene_similarity, train, unbounded_settings
+    from shells.presets import resolve_config
+    from shells.train.stage1 import train
 
     device = torch_device(args.device)
-    if args.data is None and not args.resume:
-        raise InputError("--data DIR is required (the data set to train on)")
-    if args.downscale < 1:
-        raise InputError(f"--downscale {args.downscale}: must be at least 1")
-    if args.iters is not None:  # checked before the data set is read for the preset
-        Config().update({"train": {"iters": args.iters}}, "--iters")
-    # on --resume the run's own config is used; the preset matters for new runs only
-    sim = None if args.resume else scene_similarity(args.data, args.scene)
-    base = Config() if args.resume else preset_config(args.preset, args.data, args.downscale,
-                                                      device, sim)[0]
-    cfg = load_config(args.config, base)
-    if sim is not None:
-        unbounded_settings(cfg, sim)
+    cfg, _ = resolve_config(args.data, device, args.preset, args.scene, args.downscale,
+                            args.config, args.iters, args.resume)
     with _locked_run(args.out, "shells-train"):
         summary = train(args.data, args.out, cfg, device, downscale=args.downscale,
                         resume=args.resume, iters=args.iters)
@@ -304,25 +299,16 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
-def train_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_train, train_parser(), argv, ("shells.training",))
-
-
-def extract_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="shells-extract",
-        description="Extract the outer and inner shell meshes (RUN/shells/{outer,inner}.ply) by "
-                    "level-set dilation and erosion of the trained SDF.")
+def _extract_args(p: argparse.ArgumentParser) -> None:
+    """Extract the outer and inner shell meshes (RUN/shells/{outer,inner}.ply) by level-set
+    dilation and erosion of the trained SDF."""
     p.add_argument("run", help="run directory written by shells-train")
     p.add_argument("--resolution", type=int, default=None,
                    help="grid points per axis (default: the run's config, 128 toy / 256 paper)")
     p.add_argument("--fixed-band", type=float, default=None, metavar="W",
                    help="instead of the adaptive band, the fixed band |f| <= W world units "
                         "(the paper's ablation baseline)")
-    p.add_argument("--config", default=None, metavar="FILE",
-                   help="JSON file with a 'shell' section overriding the run's settings "
-                        "(see shells/config.py), e.g. {\"shell\": {\"dilate_zeta\": 0.2}}")
-    return p
+    _config_arg(p, "a 'shell' section", '{"shell": {"dilate_zeta": 0.2}}')
 
 
 def _extract(args: argparse.Namespace) -> int:
@@ -344,32 +330,21 @@ def _extract(args: argparse.Namespace) -> int:
     return 0
 
 
-def extract_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_extract, extract_parser(), argv,
-                ("shells.pipeline", "shells.levelset.extract", "shells.levelset.figure"))
-
-
-def finetune_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="shells-finetune",
-        description="Stage 2: fine-tune the field inside the narrow band (colour loss only).")
+def _finetune_args(p: argparse.ArgumentParser) -> None:
+    """Stage 2: fine-tune the field inside the narrow band (colour loss only)."""
     p.add_argument("run", help="run directory with a checkpoint and shells")
     p.add_argument("--iters", type=int, default=None, help="fine-tuning steps")
-    p.add_argument("--resume", action="store_true", help="continue from the last stage-2 checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the last stage-2 checkpoint")
     p.add_argument("--device", choices=["cpu", "cuda"], default=None,
                    help="torch device (default: cuda if available); the Mitsuba variant follows "
                         "it unless the run's render.variant names one")
-    p.add_argument("--config", default=None, metavar="FILE",
-                   help="JSON file with 'finetune' and/or 'render' sections overriding the "
-                        "run's settings (see shells/config.py), "
-                        "e.g. {\"finetune\": {\"iters\": 1000}}")
-    p.add_argument("--shells", choices=["fine", "lod"], default="fine",
-                   help="which shells: RUN/shells (fine, default) or RUN/shells/lod (shells-lod)")
-    return p
+    _config_arg(p, "'finetune' and/or 'render' sections", '{"finetune": {"iters": 1000}}')
+    _shells_arg(p)
 
 
 def _finetune(args: argparse.Namespace) -> int:
-    from shells.finetune import finetune
+    from shells.train.stage2 import finetune
 
     with _locked_run(args.run, "shells-finetune"):
         summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
@@ -379,17 +354,10 @@ def _finetune(args: argparse.Namespace) -> int:
     return 0
 
 
-def finetune_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_finetune, finetune_parser(), argv, ("shells.finetune", "shells.levelset.mesh"))
-
-
-def render_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="shells-render",
-        description="Render a split, or a camera path to a video, with narrow-band sampling "
-                    "between the shells (band) or a baseline; writes PNGs, metrics.json (and "
-                    "video.mp4 for a path). Under torchrun the frames are shared by the "
-                    "processes (frame i on rank i mod N).")
+def _render_args(p: argparse.ArgumentParser) -> None:
+    """Render a split, or a camera path to a video, with narrow-band sampling between the
+    shells (band) or a baseline; writes PNGs, metrics.json (and video.mp4 for a path). Under
+    torchrun the frames are shared by the processes (frame i on rank i mod N)."""
     p.add_argument("run", help="run directory")
     p.add_argument("--split", default="test", help="data split to render (default test)")
     p.add_argument("--mode", choices=["band", "full", "occupancy"], default="band",
@@ -415,20 +383,15 @@ def render_parser() -> argparse.ArgumentParser:
     p.add_argument("--shard", default=None, metavar="K/N",
                    help="as one of N independent processes (no torchrun), render frames K, "
                         "K + N, ...; the last shard to finish merges all into OUT")
-    p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest",
-                   help="which checkpoint: stage 2 when present (latest, default), or explicit")
+    _stage_arg(p)
     p.add_argument("--refine", type=int, default=None, metavar="L",
                    help="image-space adaptive refinement (band mode, spp 1): evaluate every "
                         "2^L-th pixel, then interpolate a pixel from its parents where the "
                         "shell cast and the parents agree, evaluate it otherwise; 0 = plain "
                         "band mode (default: the run's render.refine_levels, 0; thresholds: "
                         "render.refine_*)")
-    p.add_argument("--config", default=None, metavar="FILE",
-                   help="JSON file with a 'render' section overriding the run's settings "
-                        "(see shells/config.py), e.g. {\"render\": {\"delta_s\": 0.01}}")
-    p.add_argument("--shells", choices=["fine", "lod"], default="fine",
-                   help="which shells: RUN/shells (fine, default) or RUN/shells/lod (shells-lod)")
-    return p
+    _config_arg(p, "a 'render' section", '{"render": {"delta_s": 0.01}}')
+    _shells_arg(p)
 
 
 def _render(args: argparse.Namespace) -> int:
@@ -444,7 +407,8 @@ def _render(args: argparse.Namespace) -> int:
             raise InputError(f"--shard {args.shard}: need 0 <= K < N")
         shard = (k, n)
     from shells.pipeline import render_out
-    from shells.run import RunDir, output_lock
+    from shells.run import RunDir
+    from shells.files import output_lock
 
     out = render_out(RunDir(args.run), args.mode, args.path, args.out)
     guard = (contextlib.nullcontext() if shard is not None  # shards share OUT by design
@@ -470,26 +434,17 @@ def _render(args: argparse.Namespace) -> int:
     return 0
 
 
-def render_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_render, render_parser(), argv,
-                ("shells.pipeline", "shells.render.views", "shells.fields.drjit_field",
-                 "shells.camera_paths", "shells.levelset.mesh"))
-
-
-def demo_parser() -> argparse.ArgumentParser:
+def _demo_args(p: argparse.ArgumentParser) -> None:
+    """The whole pipeline on a built-in toy scene: render the data set, train stage 1, extract
+    the shells, fine-tune stage 2, render full vs band and print PSNR, samples/pixel and
+    ms/frame."""
     from scenes import SCENES
 
-    p = argparse.ArgumentParser(
-        prog="shells-demo",
-        description="The whole pipeline on a built-in toy scene: render the data set, train "
-                    "stage 1, extract the shells, fine-tune stage 2, render full vs band and "
-                    "print PSNR, samples/pixel and ms/frame.")
     p.add_argument("--out", default="runs/demo", help="output directory (default runs/demo)")
     p.add_argument("--scene", choices=sorted(SCENES), default="core-fuzz")
     p.add_argument("--res", type=int, default=64, help="image size (default 64)")
     p.add_argument("--iters", type=int, default=None, help="stage-1 steps (default: toy config)")
     p.add_argument("--finetune-iters", type=int, default=None, help="stage-2 steps")
-    return p
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -500,29 +455,22 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def demo_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_demo, demo_parser(), argv, final=False)
-
-
 # --------------------------------------------------------------------------------------------
 # shells-view
 # --------------------------------------------------------------------------------------------
 
-def view_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="shells-view",
-        description="Web viewer (viser): the shells, the training cameras and the band render "
-                    "of the browser's camera as the background, re-rendered as it moves. "
-                    "Runs headless and prints the URL to open.")
+def _view_args(p: argparse.ArgumentParser) -> None:
+    """Web viewer (viser): the shells, the training cameras and the band render of the
+    browser's camera as the background, re-rendered as it moves. Runs headless and prints the
+    URL to open."""
     p.add_argument("run", help="run directory with a checkpoint and shells")
     p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
-    p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest")
+    _stage_arg(p)
     p.add_argument("--resolution", type=int, default=320,
                    help="longer side of the resting render in pixels (default 320)")
     p.add_argument("--dump", default=None, metavar="DIR",
                    help="write every resting render and its camera to DIR (tests, debugging)")
-    return p
 
 
 def _view(args: argparse.Namespace) -> int:
@@ -532,21 +480,14 @@ def _view(args: argparse.Namespace) -> int:
     return 0
 
 
-def view_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_view, view_parser(), argv)
-
-
 # --------------------------------------------------------------------------------------------
 # shells-cage, shells-animate (paper §5)
 # --------------------------------------------------------------------------------------------
 
-def cage_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="shells-cage",
-        description="Build a tetrahedral cage around the outer shell (dilated slightly, "
-                    "tetrahedralized with fTetWild) and embed the shells in it: "
-                    "RUN/cage/cage.npz, cage.vtu (ParaView), cage.json (counts, quality). "
-                    "shells-animate deforms the asset through it.")
+def _cage_args(p: argparse.ArgumentParser) -> None:
+    """Build a tetrahedral cage around the outer shell (dilated slightly, tetrahedralized with
+    fTetWild) and embed the shells in it: RUN/cage/cage.npz, cage.vtu (ParaView), cage.json
+    (counts, quality). shells-animate deforms the asset through it."""
     p.add_argument("run", help="run directory with shells (shells-extract)")
     p.add_argument("--margin", type=float, default=None, metavar="M",
                    help="distance of the cage's surface outside M+, world units (default 2.5 "
@@ -557,10 +498,8 @@ def cage_parser() -> argparse.ArgumentParser:
                    help="target tetrahedron edge as a share of the box diagonal (default 0.06; "
                         "smaller: finer cage, smoother bends, slower)")
     p.add_argument("--threads", type=int, default=0, help="fTetWild threads (default all)")
-    p.add_argument("--shells", choices=["fine", "lod"], default="fine",
-                   help="cage the fine shells (RUN/cage, default) or the LOD shells of "
-                        "shells-lod (RUN/cage/lod)")
-    return p
+    _shells_arg(p, "cage the fine shells (RUN/cage, default) or the LOD shells of shells-lod "
+                   "(RUN/cage/lod)")
 
 
 def _cage(args: argparse.Namespace) -> int:
@@ -578,19 +517,12 @@ def _cage(args: argparse.Namespace) -> int:
     return 0
 
 
-def cage_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_cage, cage_parser(), argv, ("shells.pipeline", "shells.levelset.cage"))
-
-
-def animate_parser() -> argparse.ArgumentParser:
+def _animate_args(p: argparse.ArgumentParser) -> None:
+    """Render the asset deformed through its cage (shells-cage): the shells move with the cage
+    and every band sample is mapped back to the rest pose through its tetrahedron. Writes
+    r_###.png, video.mp4, motion.npz (the cage poses) and metrics.json."""
     from shells.deform import MOTION_HELP
 
-    p = argparse.ArgumentParser(
-        prog="shells-animate",
-        description="Render the asset deformed through its cage (shells-cage): the shells move "
-                    "with the cage and every band sample is mapped back to the rest pose "
-                    "through its tetrahedron. Writes r_###.png, video.mp4, motion.npz (the "
-                    "cage poses) and metrics.json.")
     p.add_argument("run", help="run directory with a checkpoint, shells and a cage")
     p.add_argument("--motion", required=True, metavar="NAME|FILE", help=MOTION_HELP)
     p.add_argument("--frames", type=int, default=48, help="frames (default 48)")
@@ -604,16 +536,15 @@ def animate_parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, default=None, help="output height")
     p.add_argument("--zoom", type=float, default=1.0,
                    help="focal length factor of the camera (default 1)")
-    p.add_argument("--stage", choices=["latest", "stage1", "stage2"], default="latest")
-    p.add_argument("--shells", choices=["fine", "lod"], default="fine",
-                   help="deform the fine shells (default) or the LOD shells; their cage must "
-                        "exist (shells-cage [--shells lod])")
-    return p
+    _stage_arg(p)
+    _shells_arg(p, "deform the fine shells (default) or the LOD shells; their cage must exist "
+                   "(shells-cage [--shells lod])")
 
 
 def _animate(args: argparse.Namespace) -> int:
     from shells.pipeline import animate_out, animate_run
-    from shells.run import RunDir, output_lock
+    from shells.run import RunDir
+    from shells.files import output_lock
 
     out = animate_out(RunDir(args.run), args.motion, args.out)
     with _locked(output_lock(out), "shells-animate"):
@@ -626,20 +557,14 @@ def _animate(args: argparse.Namespace) -> int:
     return 0
 
 
-def animate_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_animate, animate_parser(), argv, ("shells.pipeline", "shells.render.deformed"))
-
-
 # --------------------------------------------------------------------------------------------
-# shells-lod (issue 18)
+# shells-lod
 # --------------------------------------------------------------------------------------------
 
-def lod_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="shells-lod",
-        description="Simplified shells that contain the fine ones (coarse M+ around M+, coarse "
-                    "M- inside M-, so the band only grows): RUN/shells/lod/{outer,inner}.ply, "
-                    "stats.json. Render or fine-tune with them by --shells lod.")
+def _lod_args(p: argparse.ArgumentParser) -> None:
+    """Simplified shells that contain the fine ones (coarse M+ around M+, coarse M- inside M-,
+    so the band only grows): RUN/shells/lod/{outer,inner}.ply, stats.json. Render or fine-tune
+    with them by --shells lod."""
     p.add_argument("run", help="run directory with shells (shells-extract)")
     p.add_argument("--ratio", type=float, default=10.0,
                    help="fine triangles per coarse triangle, each shell (default 10)")
@@ -648,7 +573,6 @@ def lod_parser() -> argparse.ArgumentParser:
                         "the local band width (default 0.1; clamped to 0.25..2 grid cells)")
     p.add_argument("--parity-rays", type=int, default=100_000,
                    help="random rays of the enter/exit parity check (default 100000)")
-    return p
 
 
 def _lod(args: argparse.Namespace) -> int:
@@ -672,5 +596,67 @@ def _lod(args: argparse.Namespace) -> int:
     return 0
 
 
-def lod_main(argv: Sequence[str] | None = None) -> int:
-    return _run(_lod, lod_parser(), argv, ("shells.pipeline", "shells.levelset.lod"))
+# --------------------------------------------------------------------------------------------
+# The commands: one row each (console scripts in pyproject.toml)
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Command:
+    """A console script: its arguments (a function whose docstring is the --help description),
+    its handler, and how `_run` runs it."""
+    arguments: Callable[[argparse.ArgumentParser], None]
+    handler: Callable[[argparse.Namespace], int | None]
+    preload: tuple[str, ...] = ()  # heavy imports done with signals held back (`_run`)
+    final: bool = True  # the output commit is the command's last step (`_run`)
+
+
+COMMANDS = {
+    "shells-scene": Command(_scene_args, _scene),
+    "shells-process-data": Command(_process_data_args, _process_data),
+    "shells-train": Command(_train_args, _train, ("shells.train.stage1",)),
+    "shells-extract": Command(_extract_args, _extract, ("shells.pipeline", "shells.levelset.extract",
+                                                         "shells.levelset.figure")),
+    "shells-finetune": Command(_finetune_args, _finetune, ("shells.train.stage2",
+                                                            "shells.levelset.mesh")),
+    "shells-render": Command(_render_args, _render, ("shells.pipeline", "shells.render.views",
+                                                      "shells.fields.drjit_field",
+                                                      "shells.data.camera_paths",
+                                                      "shells.levelset.mesh")),
+    "shells-demo": Command(_demo_args, _demo, final=False),
+    "shells-view": Command(_view_args, _view),
+    "shells-cage": Command(_cage_args, _cage, ("shells.pipeline", "shells.levelset.cage")),
+    "shells-animate": Command(_animate_args, _animate, ("shells.pipeline",
+                                                         "shells.render.deformed")),
+    "shells-lod": Command(_lod_args, _lod, ("shells.pipeline", "shells.levelset.lod")),
+}
+
+
+def parser(prog: str) -> argparse.ArgumentParser:
+    """The argument parser of the command ``prog`` (e.g. "shells-train")."""
+    arguments = COMMANDS[prog].arguments
+    p = argparse.ArgumentParser(prog=prog, description=inspect.getdoc(arguments))
+    arguments(p)
+    return p
+
+
+def _main_of(prog: str) -> Callable[[Sequence[str] | None], int]:
+    def main(argv: Sequence[str] | None = None) -> int:
+        c = COMMANDS[prog]
+        return _run(c.handler, parser(prog), argv, c.preload, c.final)
+
+    main.__name__ = main.__qualname__ = prog.removeprefix("shells-").replace("-", "_") + "_main"
+    main.__doc__ = f"``{prog}``: parse ``argv`` (default: the command line), run, report."
+    return main
+
+
+scene_main = _main_of("shells-scene")
+process_data_main = _main_of("shells-process-data")
+train_main = _main_of("shells-train")
+extract_main = _main_of("shells-extract")
+finetune_main = _main_of("shells-finetune")
+render_main = _main_of("shells-render")
+demo_main = _main_of("shells-demo")
+view_main = _main_of("shells-view")
+cage_main = _main_of("shells-cage")
+animate_main = _main_of("shells-animate")
+lod_main = _main_of("shells-lod")

@@ -23,7 +23,8 @@ from typing import Any
 
 from shells.errors import InputError
 
-COLOR_LOSSES = ("l1", "l2", "rmse")  # train.color_loss, finetune.color_loss (`shells.loop.color_loss`)
+# train.color_loss, finetune.color_loss (`shells.train.loop.color_loss`)
+COLOR_LOSSES = ("l1", "l2", "rmse")
 
 
 @dataclass
@@ -53,7 +54,7 @@ class FieldConfig:
     min_kernel: float = 1e-4  # lower clamp on s (numerical safety)
     max_kernel: float = 1.0  # upper clamp on s
     global_kernel: bool = False  # one learned s for the whole scene (ablation, paper Table 4)
-    # unbounded captures (paper §4.7; shells/contraction.py): the field lives in
+    # unbounded captures (paper §4.7; shells/fields/contraction.py): the field lives in
     # contracted space, x -> centre + radius c((x - centre) / radius), over the box
     # centre +- 2 radius; the identity inside the ball of interest (so world units there)
     unbounded: bool = False  # set by shells-train --scene unbounded (or from the data set)
@@ -95,7 +96,7 @@ class TrainConfig:
     reg_rays: str = "uniform"  # how the ray half is drawn: "uniform" over the step's samples;
     # "level_set": half in proportion to the compositing weight, half uniformly among the
     # samples near the level set (|f| < h + occ_k s), so the normal term acts where rays end
-    # and where they cross the surface (`shells.training.reg_points`)
+    # and where they cross the surface (`shells.train.stage1.reg_points`)
     offband_weight: float = 0.0  # weight of the off-band term: the compositing weight that lies
     # inside a solid, off its level set (f < -(h + occ_k s), h the half diagonal of an
     # occ_resolution cell), which every skipping renderer (shells, occupancy grid) drops
@@ -103,17 +104,17 @@ class TrainConfig:
     # samples a ray reaches with transmittance above free_transmittance, i.e. space the render
     # itself says is empty; an SDF is positive there, but NeuS lets the field keep a
     # transparent solid (f < 0, rising along the ray) that the shells would close
-    # (`shells.training.free_space`); 0 = off
+    # (`shells.train.stage1.free_space`); 0 = off
     free_transmittance: float = 0.99  # "free": the ray's transmittance before the sample
     coarse_to_fine_iters: int = 0  # Neuralangelo: the hash levels are switched on one by one
     # over this many steps (0 = all levels from the start)
     coarse_to_fine_start: int = 4  # levels active at step 0 when coarse_to_fine_iters > 0
     color_loss: str = "l1"  # the colour term: "l1" mean |error| (NeuS), "l2" mean squared
-    # error, "rmse" its square root (`shells.loop.color_loss`)
+    # error, "rmse" its square root (`shells.train.loop.color_loss`)
     random_background: bool = False  # RGBA data: each training pixel on a random colour, drawn
     # per pixel and step, and its rays rendered on the same colour (Instant-NGP), so the field
     # cannot keep unseen matter coloured like the background; no effect on data whose alpha
-    # holds no transparency (`shells.datasets.has_transparency`: the background is baked in)
+    # holds no transparency (`shells.data.datasets.has_transparency`: the background is baked in)
     # or on an unbounded field (its rays all end on the far solid)
     cull_weight: float = 0.0  # samples whose compositing weight (from a pass without
     # gradient) is below this get no gradient pass: they keep their values, detached (nerfacc's
@@ -427,132 +428,6 @@ _RULES = [_rule(k, *r) for k, r in [
     *[(f"render.{k}", _at_least(0)) for k in ("refine_depth", "refine_colour",
                                              "refine_field_normal")],
 ]]
-
-
-def toy_config() -> Config:
-    """Small field and short schedule for the CPU toy scenes (64x64 images, 2 cores).
-
-    The paper's sizes (2^22-entry tables, 4096^3 finest level) are for 800x800 scenes on a GPU;
-    a 64x64 toy image cannot use more than a few hundred grid cells per axis.
-    """
-    cfg = Config()
-    cfg.field = FieldConfig(n_levels=8, log2_hashmap_size=17, base_resolution=8,
-                            max_resolution=256, geo_hidden=64, rad_hidden=64,
-                            init_radius=0.5, init_kernel=0.05)
-    # lr_mlp 1e-2: the geometric init starts the hash-feature weights at zero, and at 1e-3 they
-    # grow too slowly for a 600-step schedule (the sweep is in BENCHMARKS.md, "Stage 1 toy")
-    cfg.train = TrainConfig(iters=600, batch_rays=1024, n_samples=32, n_importance=16,
-                            lr_mlp=1e-2, warmup_iters=50, checkpoint_every=250, log_every=25)
-    # zeta 0.25 / 0.1 (paper 0.1 / 0.05, kept in the paper preset): the fall-off stops the
-    # fronts at |f| = zeta, and the core-fuzz coat's density tail reaches f ~ 3 s ~ 0.2 outside
-    # the learned surface and its core ends ~0.06 inside it; an opaque surface moves only 3 s /
-    # 1.5 s, far less than either zeta (BENCHMARKS.md, "The toy preset's zeta and stage-2 lr")
-    cfg.shell = ShellConfig(resolution=128, dilate_zeta=0.25, erode_zeta=0.1)
-    # single-sample intervals up to 0.03, spacing 0.02: <= 3 samples per covered pixel on the
-    # toy sphere at 0.5 dB from full-ray rendering (BENCHMARKS.md, "Band vs full")
-    cfg.render = RenderConfig(w_s=0.03, delta_s=0.02)
-    # a short stage 2 at 3x / 10x the paper-preset learning rates (same BENCHMARKS.md section)
-    cfg.finetune = FinetuneConfig(iters=500, batch_rays=1024, lr=3e-3, lr_mlp=1e-3,
-                                  checkpoint_every=250, log_every=25)
-    return cfg
-
-
-def finest_resolution(extent: float, focal_px: float, distance: float) -> int:
-    """Finest hash-grid resolution for images of ``focal_px`` pixels of focal length seen from
-    ``distance``: a cell of half the pixel footprint (distance / focal_px) at the object, over
-    the box's largest ``extent``, rounded up to a power of two (at least 64)."""
-    cells = 2.0 * extent * focal_px / max(distance, 1e-6)
-    return max(64, 2 ** math.ceil(math.log2(max(cells, 1.0))))
-
-
-BASE_PIXELS = 870_000  # training pixels of the object preset's full schedule (lego at 1/8:
-# 87 views of 100 x 100)
-MIN_ITERS = 1000  # the shortest stage-1 schedule of the object preset
-
-
-def pixel_share(pixels: float) -> float:
-    """sqrt(pixels / BASE_PIXELS), at most 1: the share of the object preset's full schedules
-    a data set of ``pixels`` training pixels gets."""
-    return min(1.0, math.sqrt(max(pixels, 1.0) / BASE_PIXELS))
-
-
-def object_iters(doublings: int, pixels: float) -> int:
-    """Stage-1 steps of the object preset: 3000 per doubling of the finest level above 256
-    (`object_config`), times `pixel_share`, rounded to 100, at least MIN_ITERS: a 64 px capture
-    of 40 views (164 k pixels) trains 1300 steps, one of 128 px and 48 views 2900, lego at 1/8
-    and 1/4 the full 3000 and 6000."""
-    return max(MIN_ITERS, 100 * round(30 * (1 + doublings) * pixel_share(pixels)))
-
-
-def object_finetune_iters(doublings: int, pixels: float) -> int:
-    """Stage-2 steps of the object preset: 1500, 1000 more per doubling above 512, times
-    `pixel_share`, rounded to 100, at least 500: on a 64 px capture (1500 steps are 37 passes
-    over its pixels) 1500 steps lost 0.35 dB to the stage-1 field's band render, 500 kept it."""
-    return max(500, 100 * round((5 + 10 * max(1, doublings)) * pixel_share(pixels)))
-
-
-def object_config(extent: float, focal_px: float, distance: float, pixels: float = BASE_PIXELS,
-                  eikonal_weight: float = 0.005, cull_weight: float = 1e-4,
-                  color_loss: str = "rmse") -> Config:
-    """Real objects on the CPU (NeRF-synthetic, photos; 2 cores), sized from the data: the
-    default for every capture on the CPU (`shells.training.preset_config`).
-
-    The toy preset with stage 1's empty-space skipping (``sampler`` "occupancy"; the toy's 32 +
-    16 samples per ray, now on the occupied span: 16 + 16 was 1.1 dB worse on lego at equal
-    time, and 2.1 dB worse at batch 2048), 2048 crossing rays per step at the base size (1024
-    above it), 2048 regulariser points; a hash grid whose finest
-    level resolves half a pixel at the cameras' distance (`finest_resolution`: 256 for lego at
-    1/8, 512 at 1/4), one level per doubling above the toy preset's 8 levels and a table twice
-    as large per doubling from 2^18; 3000 steps per doubling, fewer for data sets of fewer
-    than BASE_PIXELS training ``pixels`` (`object_iters`). The Eikonal weight is 0.005, not
-    the toy's 0.1: on lego at 1/4 the strong term held the hash grid back (1500 steps: 23.18 dB
-    at 0.1, 25.6 at 0.02, 26.2 at 0.005), and the shells of the looser SDF still bound it (band
-    >= full ray); unbounded captures pass 0.1 and also take the ray slope and the free-space
-    term (`shells.training.preset_config`). Training pixels
-    of RGBA data go on random backgrounds (``random_background``; only where the alpha channel
-    holds transparency, `shells.datasets.has_transparency`): on
-    white alone, lego's field kept an unseen white solid under its base plate that the shells
-    had to enclose (1/8: band 4.65 samples/px; on random backgrounds 2.05, and 0.2 dB higher).
-    The colour loss is the root mean squared error (``color_loss`` "rmse"; stage 2 keeps L1):
-    under L1 every pixel pulls with the same force, and on a 64 px capture a sphere 9 px
-    across and a cube beside larger objects never appeared (their pixels kept the background
-    colour, 0.68 mean |error|); under the squared error a pixel pulls in proportion to its
-    error and both were kept, but the term shrank beside the regularisers as the fit improved
-    (lego 1/8 lost 2 dB of stage 1); its square root keeps the squared error's weighting at
-    L1's size (BENCHMARKS.md, "Small captures with the default preset").
-    Samples under 1e-4 of compositing weight get no gradient pass (``cull_weight``), and pixels
-    with content whose rays cross no occupied cell are sampled on their whole chord
-    (``occ_rescue``): lego 1/8 in 572 s instead of 665, at 31.06 dB instead of 30.98 (unbounded
-    captures pass cull_weight 0: not measured on them). Shells on a 256^3 grid, eroded 4 s
-    instead of 1.5 s (``beta_e`` 0.8: on lego the inner shell at 1.5 s cut 1 dB off the band
-    render). Stage 2 runs 1500 steps of 4096 rays (1000 more per doubling above 512).
-    BENCHMARKS.md, "Issue 13".
-    """
-    cfg = toy_config()
-    res = finest_resolution(extent, focal_px, distance)
-    doublings = max(0, int(round(math.log2(res / 256))))
-    cfg.field = dataclasses.replace(cfg.field, max_resolution=res, n_levels=8 + doublings,
-                                    log2_hashmap_size=min(21, 18 + doublings))
-    # 2048 crossing rays per step at the base size (lego 1/8, one run: 4.60x the old code's
-    # rays/s against 3.03x at 1024, 31.47 dB in 555 s against 30.96 in 413 s, about equal at
-    # equal time; a second run: 3.54x; trained interleaved with it: 4.19x); above it 1024,
-    # the setting measured there (lego 1/4: 6000 steps in 16.7 min, band 30.45 dB), 2048 not
-    cfg.train = dataclasses.replace(cfg.train, sampler="occupancy",
-                                    iters=object_iters(doublings, pixels),
-                                    batch_rays=2048 if doublings == 0 else 1024,
-                                    reg_points=2048, eikonal_weight=eikonal_weight,
-                                    random_background=True, cull_weight=cull_weight,
-                                    color_loss=color_loss,
-                                    occ_rescue=0.05, checkpoint_every=500, log_every=50)
-    cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
-    # a longer stage 2 than the toy's 500 steps of 1024 rays: 1500 of 4096, and 1000 more per
-    # doubling above 512, fewer for small data sets (`object_finetune_iters`) (lego 1/4 after 40 min of stage 1: band 30.69 dB against 29.99, for
-    # 100 s of stage 2 instead of 21 s; lego 1/8: 31.86 against 31.03, 92 s instead of 20)
-    cfg.finetune = dataclasses.replace(cfg.finetune,
-                                       iters=object_finetune_iters(doublings, pixels),
-                                       batch_rays=4096)
-    cfg.check("object preset")
-    return cfg
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:

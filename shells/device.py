@@ -6,7 +6,8 @@ import functools
 
 import torch
 
-from shells.errors import InputError, uninterrupted
+from shells.errors import InputError
+from shells.files import uninterrupted
 
 
 def torch_device(name: str | None = None) -> torch.device:

@@ -26,9 +26,9 @@ import numpy as np
 import torch
 
 from shells.config import override_config
-from shells.health import CAUSES, SOLID_SHARE, degenerate_grid
-from shells.errors import (WRITE_ERRNOS, InputError, Interrupted, commit_files, write_image,
-                           write_json)
+from shells.train.health import CAUSES, SOLID_SHARE, degenerate_grid
+from shells.errors import WRITE_ERRNOS, InputError, Interrupted
+from shells.files import commit_files, write_image, write_json
 from shells.metrics import PROTOCOL
 from shells.run import (RunDir, field_from_checkpoint, load_field, load_shells, read_checkpoint,
                         read_run, resolve_stage, shells_source)
@@ -104,7 +104,7 @@ def _extract(run: RunDir, resolution: int | None, fixed_width: float | None,
 
 def _refuse_degenerate(run: RunDir, f: Any, field: Any) -> None:
     """A one-line error (nothing written) when the grid of SDF samples ``f`` [R, R, R] is
-    degenerate (`shells.health.degenerate_grid`); an unbounded field is judged in the cube
+    degenerate (`shells.train.health.degenerate_grid`); an unbounded field is judged in the cube
     around its ball of interest (the far solid fills the corners of its box)."""
     f = torch.as_tensor(np.asarray(f))
     if field.similarity is not None:
@@ -196,7 +196,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     ``stage`` picks the checkpoint: 'latest' (stage 2 when present), 'stage1' or 'stage2';
     ``config``: a JSON file with a ``render`` section overriding the run's render settings;
     ``spp``: rays per pixel (overrides both); ``path``: orbit | spiral | interpolate | a
-    nerfstudio camera_path.json (`shells.camera_paths`), ``frames`` long, written as PNGs and
+    nerfstudio camera_path.json (`shells.data.camera_paths`), ``frames`` long, written as PNGs and
     video.mp4 at ``fps`` (default: the file's, else 30); ``refine`` L: image-space adaptive
     refinement in band mode (`shells.render.refine`, render.refine_levels). Under torchrun,
     rank r of N renders views r, r + N, ... and rank 0 writes metrics.json and the video. ``shard`` (K, N): the
@@ -204,8 +204,8 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     'fine' (RUN/shells) or 'lod' (RUN/shells/lod, shells-lod) for band mode.
     """
     from shells import distributed
-    from shells.camera_paths import camera_path
-    from shells.datasets import load_dataset
+    from shells.data.camera_paths import camera_path
+    from shells.data.datasets import load_dataset
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
 
@@ -272,7 +272,7 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
 
 
 def _stage1_health(run: RunDir) -> dict[str, Any] | None:
-    """The stage-1 summary's health record (`shells.health.Stage1Health`), None if absent."""
+    """The stage-1 summary's health record (`shells.train.health.Stage1Health`), None if absent."""
     import json
 
     try:
@@ -332,7 +332,7 @@ def _render_shard(field: Any, cams: Any, images: Any, rc: Any, mode: str, scene:
     import numpy as np
 
     from shells import distributed
-    from shells.errors import read_json
+    from shells.files import read_json
     from shells.render.views import render_frames, summarise
 
     k, n = shard
@@ -384,9 +384,9 @@ def demo(out: str | Path, scene: str = "core-fuzz", res: int = 64, views: int = 
          iters: int | None = None, finetune_iters: int | None = None) -> list[dict[str, Any]]:
     """Toy scene -> stage 1 -> shells -> stage 2 -> renders; returns the rows of the table."""
     from scenes import make_scene
-    from shells.config import toy_config
-    from shells.finetune import finetune
-    from shells.training import train
+    from shells.presets import toy_config
+    from shells.train.stage2 import finetune
+    from shells.train.stage1 import train
 
     out = Path(out)
     data, run = out / "data", out / "run"
@@ -466,11 +466,11 @@ def cage_poses(motion: str, rest: np.ndarray, tets: np.ndarray, frames: int, fps
 
 def capture_up(root: str | Path, data: Any) -> np.ndarray:
     """The capture's up direction (unit [3]): the mean up vector of the training cameras
-    (`shells.camera_paths.scene_frame`; within 2.5 degrees of +z on lego and fox), or of
+    (`shells.data.camera_paths.scene_frame`; within 2.5 degrees of +z on lego and fox), or of
     ``data``'s cameras when the set has no training split. Gravity and the analytic motions
     use it."""
-    from shells.camera_paths import scene_frame
-    from shells.datasets import read_frames
+    from shells.data.camera_paths import scene_frame
+    from shells.data.datasets import read_frames
 
     try:
         cams = read_frames(root, "train").cameras
@@ -492,9 +492,9 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
     (its focal length times ``zoom``): OUT (default RUN/animate-MOTION) gets r_###.png,
     video.mp4, motion.npz (the cage positions, reusable as --motion FILE) and metrics.json.
     ``shells`` 'lod': the LOD shells and their cage (shells-cage --shells lod)."""
-    from tqdm.auto import tqdm
+    from shells.progress import tqdm
 
-    from shells.datasets import read_frames
+    from shells.data.datasets import read_frames
     from shells.device import mitsuba_variant
     from shells.fields.drjit_field import DrJitField
     from shells.render.deformed import CageAsset
@@ -558,7 +558,7 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
 
 
 # ---------------------------------------------------------------------------------------------
-# Shell levels of detail (issue 18)
+# Shell levels of detail
 # ---------------------------------------------------------------------------------------------
 
 def lod_run(run_dir: str | Path, ratio: float = 10.0, parity_rays: int = 100_000,
@@ -567,7 +567,7 @@ def lod_run(run_dir: str | Path, ratio: float = 10.0, parity_rays: int = 100_000
     to RUN/shells/lod/{outer.ply, inner.ply, stats.json} all or nothing; returns the stats
     (triangles, file sizes, offsets used, the containment checks, ray parity). ``progress``:
     a bar over the construction's phases."""
-    from shells.errors import read_json
+    from shells.files import read_json
     from shells.levelset.lod import LodParams, make_lod
     from shells.levelset.mesh import write_ply
     from shells.run import require_bounded, shell_meshes, shells_digest

@@ -17,7 +17,8 @@ Layout::
     RUN/cage/                 cage.npz, cage.vtu, cage.json: the tetrahedral cage (shells-cage);
                               RUN/cage/lod/ the same for the LOD shells (--shells lod)
     RUN/animate-MOTION/       frames, video.mp4, motion.npz, metrics.json (shells-animate)
-    RUN/.lock                 held by the command writing the run (`lock`): pid, host, command
+    RUN/.lock                 held by the command writing the run (`shells.files.lock`): pid,
+                              host, command
 
 Versions and identity: run.json holds ``format`` (`FORMAT_VERSION`, the layout of the run
 directory and its files) and ``run_id`` (random, made by shells-train); checkpoints hold both
@@ -35,21 +36,18 @@ CLI, which reach the run only through it.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
-import os
-import socket
-import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import torch
 
 from shells.config import Config
-from shells.errors import InputError, atomic_write, read_json, uninterrupted, write_json
+from shells.errors import InputError
+from shells.files import atomic_write, read_json, write_json
 from shells.fields.network import ShellField
 
 STAGES = ("stage1", "stage2")
@@ -123,96 +121,6 @@ class RunDir:
     @property
     def lock(self) -> Path:
         return self.root / ".lock"
-
-
-def output_lock(out: str | Path) -> Path:
-    """The lock file of an output folder that is not a run (a render's OUT): beside it."""
-    out = Path(os.path.abspath(out))
-    return out.parent / f".{out.name}.lock"
-
-
-# ---------------------------------------------------------------------------------------------
-# Locks: one writer per run (or output folder) at a time
-# ---------------------------------------------------------------------------------------------
-
-def _start_time(pid: int) -> str | None:
-    """The process's start time (Linux /proc, clock ticks since boot): tells a live owner from a
-    new process that reuses its pid. None where /proc is missing or the pid is gone."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    return stat.rsplit(")", 1)[1].split()[19]
-
-
-def _alive(owner: dict[str, Any]) -> bool:
-    """Whether the process that wrote a lock still runs (True when it cannot be told: another
-    host)."""
-    if owner.get("host") != socket.gethostname():
-        return True
-    pid = int(owner.get("pid", -1))
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        pass  # someone else's live process
-    started = _start_time(pid)
-    return owner.get("started") is None or started is None or started == owner["started"]
-
-
-@contextlib.contextmanager
-def lock(path: str | Path, command: str) -> Iterator[None]:
-    """Hold the lock file ``path`` (e.g. `RunDir.lock`) for the block: a second command finds
-    it held by a live process and gets a one-line InputError at once; a lock left by a process
-    that is gone (killed) is stale and taken over. A folder the lock had to create is removed
-    again when the block leaves nothing else in it (bad input writes nothing)."""
-    path = Path(os.path.abspath(path))
-    created = [d for d in path.parents if not d.exists()]  # innermost first
-    me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _start_time(os.getpid()),
-          "command": command, "since": time.strftime("%Y-%m-%d %H:%M:%S")}
-    held = False
-    try:  # taken and given up with signals held back: a signal then would strand the lock
-        with uninterrupted():
-            for attempt in range(2):
-                path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_name(f"{path.name}.{os.getpid()}")
-                tmp.write_text(json.dumps(me) + "\n")
-                try:
-                    os.link(tmp, path)  # atomic: the lock appears with its content or not
-                    held = True
-                    break
-                except FileExistsError:
-                    try:
-                        owner = json.loads(path.read_text())
-                    except (OSError, ValueError):
-                        owner = {}  # removed meanwhile, or not ours: stale
-                    if attempt == 0 and not _alive(owner):
-                        path.unlink(missing_ok=True)
-                        continue
-                    raise InputError(
-                        f"{path.parent}: in use by {owner.get('command', 'another command')} "
-                        f"(pid {owner.get('pid', '?')} on {owner.get('host', '?')}, since "
-                        f"{owner.get('since', '?')}); wait for it to end, or delete {path} if "
-                        "that process is gone") from None
-                finally:
-                    tmp.unlink(missing_ok=True)
-        yield
-    finally:
-        if held:
-            with uninterrupted():
-                try:
-                    if json.loads(path.read_text()).get("pid") == os.getpid():
-                        path.unlink()
-                except (OSError, ValueError):
-                    pass
-                for d in created:
-                    try:
-                        d.rmdir()  # only if empty: nothing was written
-                    except OSError:
-                        break
 
 
 # ---------------------------------------------------------------------------------------------

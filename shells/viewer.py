@@ -6,7 +6,7 @@ browser's current camera (Dr.Jit, `shells.render.frame.render_image`). While the
 the render is made at a lower resolution; once it rests for ``settle_s`` it is made again at
 full resolution. A checkbox swaps the colours for the samples-per-pixel heatmap.
 
-viser's camera is in OpenCV axes (x right, y down, z forward, as `shells.cameras`); its ``fov``
+viser's camera is in OpenCV axes (x right, y down, z forward, as `shells.data.cameras`); its ``fov``
 is the vertical field of view in radians and ``aspect`` width / height of the canvas.
 """
 
@@ -47,7 +47,7 @@ class Viewer:
 
     def __init__(self, run_dir: str | Path, stage: str = "latest", max_side: int = 320,
                  moving_side: int = 120) -> None:
-        from shells.datasets import load_dataset
+        from shells.data.datasets import load_dataset
         from shells.device import mitsuba_variant
         from shells.fields.drjit_field import DrJitField
 
@@ -66,7 +66,7 @@ class Viewer:
               heat: bool = False) -> np.ndarray:
         """The band render [H, W, 3] uint8 of an OpenCV camera with vertical ``fov``; the
         longer image side is ``side`` pixels."""
-        from shells.cameras import pinhole_cameras
+        from shells.data.cameras import pinhole_cameras
         from shells.render.frame import render_image
         from shells.render.views import heatmap, to_png
 
@@ -164,7 +164,7 @@ class Viewer:
 def _dump(folder: Path, img: np.ndarray, c2w: torch.Tensor, fov: float, aspect: float) -> None:
     import json
 
-    from shells.errors import atomic_write, write_image
+    from shells.files import atomic_write, write_image
 
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write(folder / "frame.png", lambda p: write_image(p, img, extension=".png"))

@@ -50,7 +50,7 @@ def write_tiny_blender(root: Path, n_train: int = 4, n_test: int = 2, res: int =
 
 def tiny_config(train_iters: int = 4, train_batch: int = 64):
     """The toy preset shrunk for tests: a 4-level field, short schedules, a 32^3 shell grid."""
-    from shells.config import toy_config
+    from shells.presets import toy_config
 
     cfg = toy_config()
     cfg.field.n_levels, cfg.field.log2_hashmap_size, cfg.field.max_resolution = 4, 12, 64
@@ -68,7 +68,7 @@ def trained_run(root: Path, cfg) -> Path:
     import torch
 
     from shells.pipeline import extract_run
-    from shells.training import train
+    from shells.train.stage1 import train
 
     data = write_tiny_blender(root / "data")
     run = root / "run"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from shells.datasets import load_dataset
+from shells.data.datasets import load_dataset
 from shells.fields.drjit_field import DrJitField
 from shells.render.band import render_band_rays
 from shells.render.frame import render_image, render_rays

@@ -200,7 +200,7 @@ def test_rigid_motion_equals_the_moved_camera(capsule):
 def test_rigid_motion_of_a_trained_toy_run_equals_the_moved_camera(tmp_path):
     """The same check on a trained run: its torch-trained field (Dr.Jit twin), its extracted
     shells and an fTetWild cage of them."""
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
     from shells.fields.drjit_field import DrJitField
     from shells.levelset.mesh import load_ply
     from shells.render.views import render_view

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from shells.camera_paths import around, camera_path, from_file, interpolate, scene_frame
-from shells.cameras import look_at, pinhole_cameras
+from shells.data.camera_paths import around, camera_path, from_file, interpolate, scene_frame
+from shells.data.cameras import look_at, pinhole_cameras
 from shells.errors import InputError
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -105,7 +105,7 @@ def test_render_a_path_to_frames_and_video(tmp_path, capsys):
     # and the video holds it up to H.264's loss
     import imageio.v3 as iio
 
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
     from shells.fields.drjit_field import DrJitField
     from shells.render.frame import render_image
     from shells.render.views import to_png

@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from shells.cameras import (Cameras, distort, look_at, opencv_to_mitsuba, opengl_to_opencv,
-                            pinhole_cameras, subpixel_offsets, undistort)
+from shells.data.cameras import (Cameras, distort, look_at, opencv_to_mitsuba, opengl_to_opencv,
+                                 pinhole_cameras, subpixel_offsets, undistort)
 from shells.errors import InputError
 
 # Instant-NGP fox (../shared/data/fox/transforms.json): one shared camera, 1080x1920 portrait.
@@ -174,7 +174,7 @@ def test_distort_hand_worked():
 
 
 def test_distort_jacobian_matches_autograd():
-    from shells.cameras import _distort_jacobian
+    from shells.data.cameras import _distort_jacobian
 
     torch.manual_seed(0)
     xy = torch.rand(16, 2, dtype=torch.float64) * 1.6 - 0.8

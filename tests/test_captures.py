@@ -5,8 +5,8 @@ white background beside glossy solids of very different sizes; `off-centre` with
 background: a fuzzy ball and a small sphere far from the box centre. Both 64 x 64, 40 training
 views, `--preset auto`. Each object's test pixels (`scenes.parts.part_scores`) must come out
 with a mean |error| within KEPT_FACTOR of the mean over all objects' pixels in stage 1's own
-full-ray render, and the run must be healthy (`shells.health`). The whole pipeline on these
-and more captures, band render included, is `bench/captures.py` (BENCHMARKS.md)."""
+full-ray render, and the run must be healthy (`shells.train.health`). The whole pipeline on these
+and more captures, band render included, is `python -m bench.captures` (BENCHMARKS.md)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ import torch
 
 from scenes import make_scene
 from scenes.parts import objects_kept, part_scores
-from shells.datasets import has_transparency, load_dataset
-from shells.render.volume import render_volume_image
-from shells.training import preset_config, stage1_grid, train
+from shells.data.datasets import has_transparency
+from shells.presets import preset_config
+from shells.train.stage1 import test_renderer, train
 
 pytestmark = pytest.mark.slow
 
@@ -33,22 +33,7 @@ def test_the_default_keeps_every_object(tmp_path, scene, backdrop):
     summary = train(data, tmp_path / "run", cfg, cpu, progress=False, evaluate_test=False)
     assert summary["health"]["ok"], summary["health"]["warnings"]
     assert summary["background"]["random"] == (backdrop is None)
-    from shells.run import RunDir, field_from_checkpoint, read_checkpoint
-
-    ckpt = read_checkpoint(RunDir(tmp_path / "run"))
-    field, cfg = field_from_checkpoint(ckpt, "stage 1")
-    grid = stage1_grid(ckpt, field, cfg)
-    test = load_dataset(data, "test", background=cfg.data.background)
-    H, W = test.images.shape[1:3]
-    bg = torch.tensor(cfg.data.background)
-
-    def render(i: int):
-        ro, rd = test.cameras.pixel_rays(i, 1)
-        with torch.no_grad():
-            img = render_volume_image(field, ro, rd, cfg.train.n_samples,
-                                      cfg.train.n_importance, bg, grid=grid)
-        return img["color"].reshape(H, W, 3).numpy(), img["opacity"].numpy()
-
+    test, render = test_renderer(tmp_path / "run", data)
     alpha = test.alpha.numpy() if has_transparency(test.alpha) else None
     parts = part_scores(data, test.images.numpy(), alpha, render)
     kept = objects_kept(parts)

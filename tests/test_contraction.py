@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from shells.errors import InputError
-from shells.contraction import Similarity, contract, contract_jacobian, uncontract
+from shells.fields.contraction import Similarity, contract, contract_jacobian, uncontract
 
 
 def _points(n: int = 2000, seed: int = 0) -> torch.Tensor:

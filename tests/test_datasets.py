@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from shells.datasets import detect_format, load_dataset, read_frames
+from shells.data.datasets import detect_format, load_dataset, read_frames
 from shells.errors import InputError
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data"

@@ -217,7 +217,7 @@ def test_the_shards_of_a_step_draw_different_rays_on_the_cpu():
     CPU generator keeps only the low 32 bits of a seed, so shard offsets above 2^32 (as they
     were) gave all shards the same draws; shard 0 stays the stream of runs made before shards
     existed."""
-    from shells.loop import step_generator
+    from shells.train.loop import step_generator
 
     cpu = torch.device("cpu")
     n_pixels = 100 * 100 * 50

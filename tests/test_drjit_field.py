@@ -5,7 +5,7 @@ import mitsuba as mi
 import pytest
 import torch
 
-from shells.config import toy_config
+from shells.presets import toy_config
 from shells.device import mitsuba_variant
 from shells.fields.drjit_field import DrJitField
 from shells.fields.network import ShellField

@@ -30,7 +30,7 @@ import torch
 from PIL import Image
 
 from shells import cli
-from shells.datasets import MAX_TRANSFORMS_BYTES, load_dataset
+from shells.data.datasets import MAX_TRANSFORMS_BYTES, load_dataset
 from tests.conftest import tiny_config, trained_run, write_tiny_blender
 
 
@@ -535,7 +535,7 @@ def _signal_from_another_thread(signum: int = signal.SIGINT) -> None:
 def test_a_signal_after_the_final_commit_ends_the_command_as_done(tmp_path):
     """A Ctrl-C that comes once a command's outputs are committed must not report the command
     as interrupted (status 130 promises unchanged outputs); elsewhere it interrupts at once."""
-    from shells.errors import commit_files, final_commit, late_signal
+    from shells.files import commit_files, final_commit, late_signal
 
     stage, out = tmp_path / "stage", tmp_path / "out"
     stage.mkdir()
@@ -575,7 +575,7 @@ def test_a_ctrl_c_inside_a_traced_drjit_loop_ends_in_one_line(capsys):
 
 
 def test_a_signal_while_the_lock_is_taken_leaves_no_lock(tmp_path, monkeypatch):
-    import shells.run as run_module
+    import shells.files as files_module
 
     real = os.link
 
@@ -583,10 +583,10 @@ def test_a_signal_while_the_lock_is_taken_leaves_no_lock(tmp_path, monkeypatch):
         real(a, b)
         _signal_from_another_thread()  # the lock is there: it must be given up again
 
-    monkeypatch.setattr(run_module.os, "link", link)
+    monkeypatch.setattr(files_module.os, "link", link)
     body = []
     with pytest.raises(KeyboardInterrupt):  # raised once it is held, inside its try
-        with run_module.lock(tmp_path / ".lock", "test"):
+        with files_module.lock(tmp_path / ".lock", "test"):
             body.append(1)
     assert body == [] and not (tmp_path / ".lock").exists()
 

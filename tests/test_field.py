@@ -7,7 +7,8 @@ import drjit as dr
 import pytest
 import torch
 
-from shells.config import Config, FieldConfig, toy_config
+from shells.config import Config, FieldConfig
+from shells.presets import toy_config
 from shells.errors import InputError
 from shells.fields.encoding import sh_encode
 from shells.fields.network import ShellField

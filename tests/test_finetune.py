@@ -11,7 +11,7 @@ import torch
 
 from shells.cli import finetune_main
 from shells.errors import InputError
-from shells.finetune import finetune
+from shells.train.stage2 import finetune
 from shells.run import load_field
 from tests.conftest import tiny_config, trained_run
 
@@ -148,7 +148,7 @@ def test_config_override_of_a_trained_run(stage1_run, tmp_path, capsys):
 def test_one_loop_for_both_stages(stage1_run, tmp_path):
     """Stage 1 and stage 2 log the same fields; stage 2's schedule comes from its config
     (warm-up, final factor); the summaries mark finished stages; stats.json has one timing key."""
-    from shells.loop import lr_factor
+    from shells.train.loop import lr_factor
     from shells.run import RunDir, read_log
 
     run = _copy_run(stage1_run, tmp_path / "run")

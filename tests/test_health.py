@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from shells.cli import extract_main
-from shells.datasets import backdrop_colour, has_transparency
-from shells.health import (SOLID_SHARE, STALL_DB, Stage1Health, degenerate_grid, psnr_floor,
-                           solid_share)
+from shells.data.datasets import backdrop_colour, has_transparency
+from shells.train.health import (SOLID_SHARE, STALL_DB, Stage1Health, degenerate_grid, psnr_floor,
+                                 solid_share)
 from tests.conftest import tiny_config, write_tiny_blender
 
 
@@ -84,7 +84,8 @@ def _baked(root, grey: float = 0.5):
 
 
 def test_a_baked_in_backdrop_is_trained_on_its_own_colour(tmp_path):
-    from shells.training import data_background, preset_config, train
+    from shells.train.stage1 import train
+    from shells.presets import data_background, preset_config
 
     cpu = torch.device("cpu")
     clear = write_tiny_blender(tmp_path / "clear", res=16)
@@ -109,7 +110,7 @@ def test_a_solid_field_is_reported_and_not_extracted(tmp_path, capsys):
     """The field starts solid in the whole box (an initial sphere of radius 10 around a box of
     half-width 1) and does not learn (learning rates 1e-12): stage 1 says so in one line and
     in its summary, and shells-extract refuses it with exit status 2, writing nothing."""
-    from shells.training import train
+    from shells.train.stage1 import train
 
     data = write_tiny_blender(tmp_path / "data", res=16)
     cfg = tiny_config(train_iters=6)
@@ -133,7 +134,7 @@ def test_a_solid_field_is_reported_and_not_extracted(tmp_path, capsys):
 
 
 def test_a_healthy_tiny_run_has_no_warning(tmp_path, capsys):
-    from shells.training import train
+    from shells.train.stage1 import train
 
     data = write_tiny_blender(tmp_path / "data", res=16)
     cfg = tiny_config(train_iters=4)

@@ -6,16 +6,17 @@ dependency). Layers, bottom to top (a module may import only lower layers, or it
 subpackage at the same layer):
 
     0 errors
-    1 config, device, cameras, contraction, metrics, distributed, health
-    2 datasets, camera_paths, scenes/
-    3 fields/, levelset/, deform/, process_data
-    4 render/
-    5 run            the run directory (builds fields, shells)
-    6 loop           the optimisation loop of every training stage
-    7 training, finetune
-    8 pipeline       run-level extraction and rendering, the demo; viewer
-    9 cli
-   10 bench/
+    1 files         atomic writes, locks, signals; progress
+    2 config, device, metrics, distributed
+    3 data/         cameras, data sets, camera paths, COLMAP
+    4 fields/       hash grid, networks, NeuS, contraction
+    5 levelset/, deform/
+    6 render/
+    7 run           the run directory (builds fields, shells); presets (data + preset -> Config)
+    8 train/        the shared loop, stage 1, stage 2, health
+    9 pipeline      run-level extraction and rendering, the demo; viewer
+   10 cli
+   11 bench/
 """
 
 from __future__ import annotations
@@ -27,22 +28,20 @@ ROOT = Path(__file__).resolve().parents[1]
 RANKS = {
     "shells": 0,  # the package's __init__ (a docstring and the version)
     "shells.errors": 0,
-    "shells.config": 1, "shells.device": 1, "shells.cameras": 1, "shells.contraction": 1,
-    "shells.metrics": 1,
-    "shells.distributed": 1, "shells.health": 1,
-    "shells.datasets": 2, "shells.camera_paths": 2, "scenes": 2,
-    "shells.process_data": 3,
-    "shells.fields": 3, "shells.levelset": 3, "shells.deform": 3,
-    "shells.render": 4,
-    "shells.run": 5,
-    "shells.loop": 6,
-    "shells.training": 7, "shells.finetune": 7,
-    "shells.pipeline": 8, "shells.viewer": 8,
-    "shells.cli": 9,
-    "bench": 10,
+    "shells.files": 1, "shells.progress": 1,
+    "shells.config": 2, "shells.device": 2, "shells.metrics": 2, "shells.distributed": 2,
+    "shells.data": 3, "scenes": 3,
+    "shells.fields": 4,
+    "shells.levelset": 5, "shells.deform": 5,
+    "shells.render": 6,
+    "shells.run": 7, "shells.presets": 7,
+    "shells.train": 8,
+    "shells.pipeline": 9, "shells.viewer": 9,
+    "shells.cli": 10,
+    "bench": 11,
 }
-PACKAGES = ("shells.fields", "shells.levelset", "shells.deform", "shells.render", "scenes",
-            "bench")
+PACKAGES = ("shells.data", "shells.fields", "shells.levelset", "shells.deform", "shells.render",
+            "shells.train", "scenes", "bench")
 
 
 def module_name(path: Path) -> str:
@@ -79,10 +78,7 @@ def imports(path: Path, known: set[str]) -> list[tuple[str, list[str], int]]:
             rest = [n for n in names if f"{node.module}.{n}" not in known]
             if rest or not subs:
                 out.append((node.module, rest, node.lineno))
-    bench_local = {p.stem for p in (ROOT / "bench").glob("*.py")}  # bench scripts import
-    return [(("bench." + m) if m in bench_local and path.parent.name == "bench" else m, n, ln)
-            for m, n, ln in out  # each other by plain name (report.py)
-            if m.split(".")[0] in ("shells", "scenes", "bench") or m in bench_local]
+    return [(m, n, ln) for m, n, ln in out if m.split(".")[0] in ("shells", "scenes", "bench")]
 
 
 def graph() -> dict[str, list[tuple[str, list[str], int]]]:
@@ -161,8 +157,8 @@ def test_the_checks_catch_what_they_are_for():
     g = graph()
     assert len(g) > 30 and "shells.render.raycast" in {m for m, _, _ in g["shells.render.frame"]}
     assert layer_violations({"shells.render.frame": [("shells.run", [], 7)]}) == [
-        "shells.render.frame:7 (shells.render, layer 4) imports shells.run (layer 5)"]
-    assert layer_violations({"shells.finetune": [("shells.training", [], 1)]})  # sideways
+        "shells.render.frame:7 (shells.render, layer 6) imports shells.run (layer 7)"]
+    assert layer_violations({"shells.pipeline": [("shells.viewer", [], 1)]})  # sideways
     assert layer_violations({"shells.fields.network": [("shells.levelset.grid", [], 1)]})
     assert not layer_violations({"shells.render.frame": [("shells.render.occupancy", [], 1)]})
     assert find_cycles({"a": ["b"], "b": ["c"], "c": ["a"]}) == ["a -> b -> c -> a"]

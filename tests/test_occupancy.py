@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -185,13 +183,13 @@ def test_raycast_floor_hits_the_outer_shell():
 
 
 def test_render_speed_bench_end_to_end(tmp_path, tiny_blender, capsys):
-    """bench/render_speed.py on a run as the pipeline leaves it (untrained field: geometric-init
+    """bench.render_speed on a run as the pipeline leaves it (untrained field: geometric-init
     sphere r = 0.5, shells at 0.6 / 0.4), with small settings."""
-    from shells.config import toy_config
-    from shells.errors import write_json
-    from shells.loop import make_optimizer
+    from shells.presets import toy_config
+    from shells.files import write_json
+    from shells.train.loop import make_optimizer
     from shells.run import save_checkpoint
-    from shells.training import build_field
+    from shells.train.stage1 import build_field
 
     run = tmp_path / "run"
     cfg = toy_config()
@@ -203,10 +201,8 @@ def test_render_speed_bench_end_to_end(tmp_path, tiny_blender, capsys):
     trimesh.creation.icosphere(subdivisions=3, radius=0.6).export(run / "shells" / "outer.ply")
     trimesh.creation.icosphere(subdivisions=3, radius=0.4).export(run / "shells" / "inner.ply")
 
-    path = Path(__file__).resolve().parents[1] / "bench" / "render_speed.py"
-    spec = importlib.util.spec_from_file_location("render_speed", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    from bench import render_speed as bench
+
     md = tmp_path / "BENCH.md"
     md.write_text("# Benchmarks\n")
     rc = bench.main([str(run), "--views", "1", "--full-samples", "32", "--occ-resolution", "16",

@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from shells.cameras import look_at
-from shells.process_data import _rotation_to_z, focus_point, normalise_poses
+from shells.data.cameras import look_at
+from shells.data.colmap import _rotation_to_z, focus_point, normalise_poses
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
@@ -72,8 +71,8 @@ def test_colmap_recovers_the_lego_poses(tmp_path):
     defaults, BENCHMARKS.md), median errors well under that, the focal length within 3 %."""
     import imageio.v3 as iio
 
-    from shells.datasets import load_dataset
-    from shells.process_data import process_data
+    from shells.data.datasets import load_dataset
+    from shells.data.colmap import process_data
 
     src = tmp_path / "photos"
     src.mkdir()
@@ -82,8 +81,7 @@ def test_colmap_recovers_the_lego_poses(tmp_path):
         iio.imwrite(src / f"{Path(name).stem}.png", (img.numpy() * 255).round().astype(np.uint8))
     summary = process_data(src, tmp_path / "colmap")
     assert summary["registered"] >= 83  # of 87
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from colmap_accuracy import accuracy
+    from bench.colmap_accuracy import accuracy
 
     acc = accuracy(tmp_path / "colmap", DATA / "lego" / "transforms_train.json")
     assert acc["registered_fraction"] >= 0.95, acc

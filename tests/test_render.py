@@ -137,7 +137,7 @@ def test_packed_drjit_band_render_matches_padded_torch_reference(shells):
 def test_trained_field_twin_band_render_matches_torch(shells):
     """The real field (geometric init: a sphere of radius 0.5, inside the 0.4-0.6 band) through
     DrJitField + packed Dr.Jit compositing vs ShellField + padded torch compositing."""
-    from shells.config import toy_config
+    from shells.presets import toy_config
     from shells.fields.network import ShellField
 
     torch.manual_seed(0)
@@ -178,7 +178,7 @@ def test_band_and_full_agree_on_analytic_sphere(shells):
 def test_spp_averages_the_sub_pixel_rays(shells):
     # cfg.spp = 4: a pixel's colour is the mean of its 4 rays and its sample count their sum,
     # exactly as four separate one-ray renders of the same rays
-    from shells.cameras import pinhole_cameras
+    from shells.data.cameras import pinhole_cameras
 
     # OpenCV camera at z = -2 looking at the sphere (radius 0.5: ~5 px of the 16 px image)
     c2w = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -2.0], [0, 0, 0, 1]])
@@ -222,7 +222,7 @@ def test_bad_mode_raises(shells):
 # ---------------------------------------------------------------------------------------------
 
 def test_render_views_writes_images_and_metrics(shells, tmp_path, tiny_blender):
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
     from shells.render.views import render_views
 
     data = load_dataset(tiny_blender, "test")  # 2 views, 16x16, cameras 3 units from the origin
@@ -255,7 +255,7 @@ def test_heatmap_ends():
 
 
 def test_render_run_errors_write_nothing(tmp_path):
-    from shells.errors import write_json
+    from shells.files import write_json
     from shells.pipeline import render_run
 
     run = tmp_path / "run"
@@ -278,13 +278,13 @@ def test_render_run_end_to_end(tmp_path, tiny_blender):
     shells at 0.6 / 0.4) -> images, heatmaps and metrics.json; full mode at a reduced size."""
     import json
 
-    from shells.config import toy_config
-    from shells.errors import write_json
+    from shells.presets import toy_config
+    from shells.files import write_json
     from shells.fields.network import ShellField
-    from shells.loop import make_optimizer
+    from shells.train.loop import make_optimizer
     from shells.pipeline import render_run
     from shells.run import save_checkpoint
-    from shells.training import build_field
+    from shells.train.stage1 import build_field
 
     run = tmp_path / "run"
     cfg = toy_config()

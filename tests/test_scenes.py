@@ -2,7 +2,7 @@
 
 Rays are generated here straight from the written JSON (focal from camera_angle_x, pixel centres
 at +0.5, OpenGL -> OpenCV), independently of scenes/cameras.py, and also through the project's
-loader (shells.datasets) when it exists.
+loader (shells.data.datasets) when it exists.
 """
 
 from __future__ import annotations
@@ -183,7 +183,7 @@ def test_json_cameras_hit_the_sphere_where_alpha(sphere_set, factor):
 
 @pytest.mark.parametrize("factor", [1, 2])
 def test_loader_cameras_hit_the_sphere_where_alpha(sphere_set, factor):
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
 
     for split in ("train", "test"):
         data = load_dataset(sphere_set, split, factor)

@@ -17,9 +17,8 @@ import torch
 
 from scenes import make_scene
 from scenes.parts import PARTS, part_scores
-from shells.datasets import load_dataset
-from shells.render.volume import render_volume_image
-from shells.training import preset_config, stage1_grid, train
+from shells.presets import preset_config
+from shells.train.stage1 import test_renderer, train
 
 pytestmark = pytest.mark.slow
 
@@ -33,25 +32,12 @@ def trained(tmp_path_factory: pytest.TempPathFactory):
     assert cfg.train.sampler == "occupancy" and cfg.train.eikonal_weight == 0.005
     cfg.update({"train": {"iters": 1500}}, "test")
     train(data, root / "run", cfg, torch.device("cpu"), progress=False, evaluate_test=False)
-    from shells.run import RunDir, field_from_checkpoint, read_checkpoint
-
-    ckpt = read_checkpoint(RunDir(root / "run"))
-    field, cfg = field_from_checkpoint(ckpt, "stage 1")
-    return data, field, cfg, stage1_grid(ckpt, field, cfg)
+    return data, root / "run"
 
 
 def test_the_thin_rod_and_plate_are_kept(trained) -> None:
-    data, field, cfg, grid = trained
-    test = load_dataset(data, "test", background=cfg.data.background)
-    H, W = test.images.shape[1:3]
-    bg = torch.tensor(cfg.data.background)
-
-    def render(i: int):
-        ro, rd = test.cameras.pixel_rays(i, 1)
-        img = render_volume_image(field, ro, rd, cfg.train.n_samples, cfg.train.n_importance, bg,
-                                  grid=grid)
-        return img["color"].reshape(H, W, 3).numpy(), img["opacity"].numpy()
-
+    data, run = trained
+    test, render = test_renderer(run, data)
     parts = part_scores(data, test.images.numpy(), test.alpha.numpy(), render)
     sphere, rod, plate = (parts[k] for k in PARTS)
     assert rod["pixels"] >= 20 and plate["pixels"] >= 20, "too few rod / plate pixels"

@@ -9,19 +9,19 @@ import pytest
 import torch
 
 from shells.cli import train_main
-from shells.config import toy_config
+from shells.presets import toy_config
 from shells.errors import InputError
-from shells.loop import lr_factor
+from shells.train.loop import lr_factor
 from shells.run import load_field
-from shells.training import train
+from shells.train.stage1 import train
 
 
 def test_fused_adam_matches_the_reference_adam():
     """make_optimizer's fused Adam makes the updates of torch's per-tensor Adam (float32
     rounding apart), hash-table rows without gradient (zeros) included."""
     from tests.conftest import tiny_config
-    from shells.loop import make_optimizer
-    from shells.training import build_field
+    from shells.train.loop import make_optimizer
+    from shells.train.stage1 import build_field
 
     cfg = tiny_config()
     aabb = torch.tensor([[-1.0] * 3, [1.0] * 3])
@@ -99,9 +99,9 @@ def test_kill_and_resume_matches_uninterrupted(tiny_blender, tmp_path, sampler):
 def test_occupancy_steps_draw_until_the_batch_crosses_the_grid(tiny_blender):
     """The "occupancy" sampler: pixels are drawn until batch_rays of them cross an occupied
     cell; the rest cost no samples but enter the loss."""
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
     from shells.render.volume import SpanGrid
-    from shells.training import build_field, draw_pixels, stage1_step
+    from shells.train.stage1 import build_field, draw_pixels, stage1_step
 
     cfg = _tiny_config("occupancy")
     data = load_dataset(tiny_blender, "train")
@@ -127,9 +127,9 @@ def test_occupancy_rescue_renders_lost_content_on_the_whole_chord(tiny_blender):
     """``occ_rescue``: a drawn pixel that crosses no occupied cell but whose target is not its
     background is rendered on its whole box chord (content the grid lost); the others that
     cross nothing still cost no samples."""
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
     from shells.render.volume import SpanGrid
-    from shells.training import build_field, draw_pixels, stage1_step
+    from shells.train.stage1 import build_field, draw_pixels, stage1_step
 
     cfg = _tiny_config("occupancy")
     data = load_dataset(tiny_blender, "train")
@@ -156,8 +156,8 @@ def test_occupancy_rescue_renders_lost_content_on_the_whole_chord(tiny_blender):
 def test_normal_term_delayed_and_ramped_in(tiny_blender):
     """normal_delay / normal_ramp: the normal term's weight is 0, then rises linearly; the
     step's loss holds exactly that share of it (same draw at every step number)."""
-    from shells.datasets import load_dataset
-    from shells.training import build_field, normal_factor, stage1_step
+    from shells.data.datasets import load_dataset
+    from shells.train.stage1 import build_field, normal_factor, stage1_step
 
     cfg = _tiny_config()
     cfg.update({"train": {"normal_delay": 3, "normal_ramp": 4, "normal_weight": 0.5}})
@@ -185,7 +185,7 @@ def test_normal_term_delayed_and_ramped_in(tiny_blender):
 
 def test_coarse_to_fine_switches_levels_on():
     from shells.fields.network import ShellField
-    from shells.training import active_levels
+    from shells.train.stage1 import active_levels
 
     cfg = _tiny_config()
     cfg.update({"train": {"coarse_to_fine_iters": 10, "coarse_to_fine_start": 2}})
@@ -209,7 +209,7 @@ def test_coarse_to_fine_switches_levels_on():
 
 
 def test_object_preset_schedule_follows_the_training_pixels():
-    from shells.config import object_finetune_iters, object_iters
+    from shells.presets import object_finetune_iters, object_iters
 
     # 3000 steps per doubling at 870 000 pixels (lego 1/8: 87 views of 100 x 100) and above;
     # sqrt of the pixel share below, at least 1000
@@ -226,7 +226,7 @@ def test_object_preset_schedule_follows_the_training_pixels():
 
 def test_auto_preset_follows_the_image_size(tmp_path):
     from tests.conftest import write_tiny_blender
-    from shells.training import preset_config
+    from shells.presets import preset_config
 
     cpu = torch.device("cpu")
     small = write_tiny_blender(tmp_path / "small", res=64)
@@ -251,7 +251,7 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     assert (half.train.batch_rays, cfg.train.batch_rays) == (2048, 1024)
     assert preset_config("toy", big, 1, cpu)[0].finetune.iters == 500
     # the weak Eikonal term is for bounded objects; an unbounded capture keeps the toy's 0.1
-    from shells.contraction import Similarity
+    from shells.fields.contraction import Similarity
     assert cfg.train.eikonal_weight == 0.005
     sim = Similarity(centre=(0.0, 0.0, 0.0), radius=1.0)
     assert preset_config("object", big, 1, cpu, sim=sim)[0].train.eikonal_weight == 0.1
@@ -312,7 +312,7 @@ def test_stage1_runs_drjit_lookups_on_the_calling_thread(tiny_blender, tmp_path,
     calling thread (`drjit_on_calling_thread`), and the pool has its size again afterwards."""
     import drjit as dr
 
-    import shells.training as tr
+    import shells.train.stage1 as tr
 
     seen, real = [], tr.stage1_step
     monkeypatch.setattr(tr, "stage1_step", lambda *a, **k: seen.append(dr.thread_count())
@@ -369,7 +369,7 @@ def test_config_values_are_type_checked():
 def test_supersampled_training_pixels(tiny_blender, tmp_path, capsys):
     # train.pixel_samples = 4: batch_rays // 4 pixels per step, each with one jittered ray in
     # each quarter of the pixel (projected back onto the image, the rays land there)
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
 
     data = load_dataset(tiny_blender, "train")
     H, W = data.images.shape[1:3]
@@ -438,7 +438,7 @@ def test_off_band_weight_hand_worked():
     box and 1 cell per axis (h = sqrt(3)) and k = 1, s = 0.1 everywhere, the band is
     |f| < 1.832; ray 0 holds 0.2 of its 0.9 there, ray 1 nothing of its 0.5."""
     from shells.config import TrainConfig
-    from shells.training import off_band
+    from shells.train.stage1 import off_band
 
     class F:
         aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -461,7 +461,7 @@ def test_free_space_term_hand_worked():
     samples are free, f = 0.2, -0.3, -0.1 -> 0, 0.3, 0.1; ray 1 misses its span (no sample).
     Mean 0.4 / 3; two of the three free samples are at f < 0."""
     from shells.config import TrainConfig
-    from shells.training import free_space
+    from shells.train.stage1 import free_space
 
     tc = TrainConfig(free_weight=0.1)
     sdf = torch.tensor([[0.2, -0.3, -0.1, -0.5], [-1.0, -1.0, -1.0, -1.0]], requires_grad=True)
@@ -479,8 +479,8 @@ def test_free_space_term_hand_worked():
 def test_level_set_regulariser_points_come_from_weight_and_band(tiny_blender):
     """reg_rays 'level_set': the ray half of the points is drawn only where the weight is and
     among the near-level-set samples, half each; the other half stays uniform in the box."""
-    from shells.datasets import load_dataset
-    from shells.training import build_field, reg_points
+    from shells.data.datasets import load_dataset
+    from shells.train.stage1 import build_field, reg_points
 
     cfg = _tiny_config()
     data = load_dataset(tiny_blender, "train")
@@ -505,7 +505,7 @@ def test_level_set_regulariser_points_come_from_weight_and_band(tiny_blender):
 def test_color_losses_hand_worked():
     """'l1' is the mean |error| over pixels and channels, 'l2' the mean squared error, 'rmse'
     its square root, with their gradients; any other name is a one-line config error in either stage."""
-    from shells.loop import color_loss
+    from shells.train.loop import color_loss
 
     pred = torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.0, 0.2]], requires_grad=True)
     target = torch.tensor([[0.3, 0.5, 0.9], [1.0, 0.6, 0.2]])
@@ -533,7 +533,7 @@ def test_color_losses_hand_worked():
 def test_random_background_targets_hand_worked():
     """train.random_background: a pixel composited on white is recomposited on the drawn
     colour b exactly: straight colour c, alpha a -> a c + (1 - a) b."""
-    from shells.training import random_backgrounds
+    from shells.train.stage1 import random_backgrounds
 
     c = torch.tensor([[0.2, 0.4, 0.6], [0.9, 0.1, 0.3], [0.5, 0.5, 0.5]])
     a = torch.tensor([0.25, 1.0, 0.0])
@@ -555,9 +555,9 @@ def test_random_background_targets_hand_worked():
 def test_random_background_renders_each_ray_on_its_colour(tiny_blender, sampler):
     """A step with random backgrounds: a pixel whose ray carries no opacity is rendered as its
     own drawn colour, so a fully transparent one has zero error (not white against b)."""
-    from shells.datasets import load_dataset
+    from shells.data.datasets import load_dataset
     from shells.render.volume import SpanGrid
-    from shells.training import build_field, random_backgrounds, stage1_step
+    from shells.train.stage1 import build_field, random_backgrounds, stage1_step
 
     cfg = _tiny_config(sampler)
     data = load_dataset(tiny_blender, "train")

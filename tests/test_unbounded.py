@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from shells.config import RenderConfig, ShellConfig, toy_config
+from shells.config import RenderConfig, ShellConfig
+from shells.presets import toy_config
 from shells.device import mitsuba_variant
-from shells.contraction import Similarity, contract, contract_jacobian
+from shells.fields.contraction import Similarity, contract, contract_jacobian
 from shells.fields.drjit_field import DrJitField
 from shells.fields.network import ShellField
 from shells.levelset.extract import extract_shells
@@ -334,7 +335,7 @@ def test_shells_in_field_space_mapped_to_the_world_contain_the_solid():
 
 
 def contract_inv(z: np.ndarray, sim: Similarity) -> np.ndarray:
-    from shells.contraction import uncontract
+    from shells.fields.contraction import uncontract
     y = (z - np.asarray(sim.centre)) / sim.radius
     return uncontract(torch.from_numpy(y)).numpy() * sim.radius + np.asarray(sim.centre)
 
@@ -386,7 +387,7 @@ def _ring_data(root, outward: bool):
 
 def test_bad_input_cameras_inside_the_object_and_bounded_only_commands(tmp_path, capsys):
     from shells.cli import cage_main, lod_main, train_main
-    from shells.training import scene_similarity
+    from shells.presets import scene_similarity
 
     def one_line_error(status: int) -> str:
         err = capsys.readouterr().err.strip().splitlines()
@@ -416,7 +417,7 @@ def test_regularisers_act_on_the_network_not_on_the_far_solid():
     """The far solid is an exact SDF with exact normals and a constant kernel: on
     min(f_net, solid) the Eikonal, normal and smoothness terms could be zeroed by raising
     f_net above it. They see the network alone."""
-    from shells.training import regularisers
+    from shells.train.stage1 import regularisers
 
     f = _field(seed=5)
     g = torch.Generator().manual_seed(0)

@@ -237,7 +237,7 @@ def test_culled_gradient_pass_keeps_the_render_and_drops_only_light_samples():
 def test_culled_gradient_pass_on_a_hash_grid_field():
     """The same on a hash-grid field after a few steps toward a sharp sphere: every parameter's
     gradient within 1 % of the unculled one (relative norm), with samples culled."""
-    from shells.config import toy_config
+    from shells.presets import toy_config
     from shells.fields.network import ShellField
     from shells.render.volume import render_volume_rays
 

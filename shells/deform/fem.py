@@ -27,9 +27,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from shells.errors import InputError
+from shells.progress import tqdm
 
 
 @dataclass

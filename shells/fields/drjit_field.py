@@ -41,7 +41,7 @@ class FieldSample:
 def contract_point(x, centre: tuple[float, float, float], radius: float):
     """W(x) = centre + radius c((x - centre) / radius) for Dr.Jit 3-vectors (x itself inside
     the ball), with u = (x - centre) / radius and |u|: the contraction of
-    `shells.contraction`, for the twin and the occupancy march of an unbounded field."""
+    `shells.fields.contraction`, for the twin and the occupancy march of an unbounded field."""
     c = type(x)(*centre)
     u = (x - c) / radius
     r = dr.norm(u)

@@ -149,7 +149,7 @@ class HashGrid(nn.Module):
         Corner-major (c = 4 bz + 2 by + bx), then level, then point: the index math is separable
         per axis (dense: a sum, hash: an XOR), so per-axis terms [2, L, N] are combined by
         broadcasting over the *outer* dims, which keeps every inner loop a long contiguous run
-        (broadcasting over size-2 inner dims was 5x slower on CPU).
+        (broadcasting over size-2 inner dims is several times slower on CPU).
         """
         N, L, nd = x01.shape[0], self.n_levels, self.n_dense
         # one fma in float64 rounded once to float32 == Dr.Jit's fp32 fma
@@ -207,10 +207,9 @@ def drjit_on_calling_thread() -> Iterator[None]:
 
     For torch work between the lookups (training on the CPU). A worker of Dr.Jit's thread pool
     (nanothread) busy-waits for 500 000 attempts at new work after every kernel before it
-    sleeps, and meanwhile holds a core that torch's OpenMP threads need: on 2 cores the
-    geometry MLP right after a lookup took 16 ms against 8 ms otherwise, and a stage-1 step
-    of lego 1/8 ran 1.12-1.23x faster with the lookups on the calling thread
-    (`bench/drjit_threads.py`; BENCHMARKS.md, "Dr.Jit's spinning workers"). The lookups give
+    sleeps, and meanwhile holds a core that torch's OpenMP threads need: on 2 cores the torch
+    work right after a lookup slows down markedly, and a stage-1 step runs faster with the
+    lookups on the calling thread (BENCHMARKS.md, method notes). The lookups give
     the same floats on any number of threads (each point is computed alone)."""
     if not drjit_llvm():
         yield
@@ -257,10 +256,10 @@ def _drjit_lookup(grid: HashGrid, x01: torch.Tensor) -> torch.Tensor:  # [N, 3] 
 class _Lookup(torch.autograd.Function):
     """out[m] = sum_c w[c, m] table[rows[c, m]]: one gather for all levels and corners.
 
-    For F = 2 the table is viewed as complex64, one 8-byte element per row: measured on one
-    CPU thread (4M lookups) the gather takes 34 ms instead of 80 ms for [R, 2] rows, and the
-    backward scatter (`index_add_`) 42 ms instead of 108 ms (`index_put_(accumulate=True)`,
-    autograd's backward of `table[rows]`, took 207 ms).
+    For F = 2 the table is viewed as complex64, one 8-byte element per row: on one CPU thread
+    the gather and the backward scatter (`index_add_`) take less than half their time on
+    [R, 2] rows (`index_put_(accumulate=True)`, autograd's backward of `table[rows]`, is
+    slower still).
     """
 
     @staticmethod
@@ -290,7 +289,7 @@ class _Lookup(torch.autograd.Function):
                 upd = torch.view_as_complex(upd)
                 grad_params = torch.zeros(ctx.n_params // 2, dtype=upd.dtype, device=grad.device)
                 # int32 rows (< 2^31: Dr.Jit's cap) scatter 1.6x faster on the CPU, the same sum
-                # in the same order (bench/hash_scatter.py)
+                # in the same order
                 idx = rows.view(-1)
                 grad_params.index_add_(0, idx.int() if idx.device.type == "cpu" else idx,
                                        upd.view(-1))

@@ -10,7 +10,7 @@ towards grad f / |grad f| by the normal loss).
 
 Unbounded captures (``cfg.unbounded``, paper §4.7): the field lives in *field space*, the
 contracted copy of the world z = W(x) = centre + radius c((x - centre) / radius)
-(`shells.contraction`), over the box centre +- 2 radius; W is the identity inside the
+(`shells.fields.contraction`), over the box centre +- 2 radius; W is the identity inside the
 ball of interest, so f and s keep world units there. Beyond ``cfg.far_radius`` (contracted,
 in radius units) everything is solid: f = min(f_net, radius (far_radius - |y|)) with
 y = (z - centre) / radius, the far background that closes every ray. f is an SDF of z (the
@@ -40,7 +40,7 @@ from torch import nn
 
 from shells.config import FieldConfig
 from shells.errors import InputError
-from shells.contraction import Similarity, contract
+from shells.fields.contraction import Similarity, contract
 from shells.fields.encoding import sh_dim, sh_encode
 from shells.fields.hashgrid import HashGrid, per_level_scale
 
@@ -257,8 +257,8 @@ class ShellField(nn.Module):
                           ) -> dict[str, torch.Tensor]:
         """The network alone (no far solid) at z, at z +- eps e_i and at z_extra, in one
         batched evaluation: one hash-grid lookup, hence one gradient scatter into the table
-        where three separate calls made three, each into a zeroed table-sized buffer, then
-        summed (BENCHMARKS.md). Returns ``grad`` [N, 3] (= `sdf_gradient_fd` (z, eps, far=
+        where three separate calls would make three, each into a zeroed table-sized buffer,
+        then summed (BENCHMARKS.md). Returns ``grad`` [N, 3] (= `sdf_gradient_fd` (z, eps, far=
         False)), ``normal`` [N, 3] and ``s`` [N] (= `geometry_field` (z, far=False)) and
         ``s_extra`` [M] (= `kernel` (z_extra, far=False))."""
         N = z.shape[0]

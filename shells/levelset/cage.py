@@ -47,7 +47,8 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
-from shells.errors import InputError, atomic_write
+from shells.errors import InputError
+from shells.files import atomic_write
 from shells.levelset.mesh import clean_mesh, marching_cubes
 
 LOCATE_EPS = 1e-5  # barycentric tolerance: a point on a shared face belongs to either side

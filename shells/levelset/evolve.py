@@ -36,14 +36,14 @@ the surface density is sigma = 1 / (2 s)):
   (sigma_min is an optional threshold on the kernel size s below which nothing grows
   outward; the default 0 dilates every surface by about 5 * beta_d * s = 3 s, which keeps the
   outer part of a sharp kernel - silhouettes and the colour weighting in front of the
-  surface - inside the band: on the toy sphere, no dilation cost 2.3 dB against full-ray
-  rendering, 3 s cost 0.5 dB; see BENCHMARKS.md),
+  surface - inside the band: without dilation the band render of a sharp surface falls
+  well short of full-ray rendering; see BENCHMARKS.md),
 - erosion   v_e(x) = min(beta_e * s(x), v_max), moving inward.
 
 With the defaults (beta_d = 0.6, sigma_min = 0, beta_e = 0.3, v_max = 0.035) an opaque surface
 with s = 0.005 gets a band of about 3 s + 1.5 s = 0.023 (4.5 % of a radius-0.5 sphere), while
 a fuzzy region (s = 0.05) is dilated and eroded up to the zeta limits (paper: 0.1 outward, 0.05
-inward; the toy preset allows 0.25 / 0.1 for the thick core-fuzz coat, see shells/config.py).
+inward; the toy preset allows 0.25 / 0.1 for the thick core-fuzz coat, see shells/presets.py).
 """
 
 from __future__ import annotations
@@ -117,8 +117,8 @@ def evolve(f0: np.ndarray,  # [X, Y, Z] SDF on the grid, f > 0 outside (world un
     On the CPU a step is one fused Dr.Jit LLVM kernel (`_integrate_llvm`, the same arithmetic
     as the torch `_step`, which CUDA tensors take): the ~26 tensor ops of `_step` each read and
     write the whole band, where the kernel reads a voxel's neighbours once and finds them from
-    its flat index (fox's wide shells at 256^3: 478 s of evolution in torch, 6.8 s so;
-    BENCHMARKS.md, "Level-set evolution in one kernel").
+    its flat index (on fox's wide shells at 256^3 the evolution runs well over an order of
+    magnitude faster than in torch; BENCHMARKS.md).
     """
     f0 = np.asarray(f0, dtype=np.float32)
     assert f0.ndim == 3 and np.shape(v) == f0.shape, (f0.shape, np.shape(v))
@@ -162,7 +162,7 @@ def _steps(n: int, progress: str | None) -> Any:
     """range(n), under a progress bar labelled ``progress`` unless it is None."""
     if progress is None:
         return range(n)
-    from tqdm.auto import tqdm
+    from shells.progress import tqdm
     return tqdm(range(n), desc=progress, unit="step", leave=False)
 
 

@@ -23,7 +23,8 @@ import trimesh
 from scipy import ndimage
 
 from shells.config import ShellConfig
-from shells.errors import InputError, commit_files
+from shells.errors import InputError
+from shells.files import commit_files
 from shells.levelset.evolve import (dilation_velocity, erosion_velocity, shell_sdfs,
                                     substeps)
 from shells.levelset.grid import check_aabb

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from shells.errors import atomic_write, write_image
+from shells.files import atomic_write, write_image
 from shells.levelset.grid import check_aabb
 
 _DIVERGING = np.array([[0.23, 0.30, 0.75], [1.0, 1.0, 1.0], [0.71, 0.02, 0.15]])

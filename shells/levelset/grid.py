@@ -95,7 +95,7 @@ def sample_grid_banded(fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Te
     todo = np.flatnonzero(np.abs(f) < band + margin)
     lo = torch.as_tensor(box[0], dtype=torch.float32, device=device)
     h = torch.as_tensor(spacing, dtype=torch.float32, device=device)
-    from tqdm.auto import tqdm
+    from shells.progress import tqdm
     bar = tqdm(total=len(todo), desc="sample field", unit="pt", unit_scale=True, leave=False,
                disable=not progress)
     with torch.no_grad(), bar:

@@ -1,4 +1,4 @@
-"""Simplified shells that still contain the fine ones: levels of detail for M+ and M- (issue 18).
+"""Simplified shells that still contain the fine ones: levels of detail for M+ and M-.
 
 Guarantee: the coarse outer shell C+ contains the fine outer shell M+, and the coarse inner
 shell C- lies inside the fine inner shell M-. So the band between them only grows and nothing
@@ -30,10 +30,9 @@ Construction (`make_lod`), the same for both shells (`offset_lod`):
 
 Why offsets: the band renderer's samples grow with the distance between the coarse and the
 fine shell and with every thin part left out (an interval of width w takes
-ceil((w - w_s) / delta_s) + 1 samples). On lego at 1/8 the earlier voxel interior of M-
-(0.97 h deep, thin parts dropped) took 29 % more samples than M- in a stage-1 band render,
-the 0.3 h offset 11.8 %; the alpha wrap of M+ 6.5 %, the 0.2 h offset 3.5 %
-(`bench/lod_shell_cost.py`, before the snap; BENCHMARKS.md, issue 18).
+ceil((w - w_s) / delta_s) + 1 samples). A close offset keeps thin parts and adds little
+width, so it costs fewer band samples than a voxel interior of M- that drops thin parts or
+than the alpha wrap of M+ (`python -m bench.lod_shell_cost`; BENCHMARKS.md).
 
 The check of every step is `shells.levelset.containment.verify` (winding numbers, no
 crossing or self-intersecting faces, closed edges), with `check_side` naming where it failed.
@@ -66,10 +65,10 @@ class LodParams:
     kappa: float = 0.1  # alpha wrap (C+ fallback): offset = kappa * local band width ...
     lo: float = 0.25  # ... clamped to [lo h, hi h]
     hi: float = 2.0
-    outer_offset: float = 0.2  # C+: the offset of M+ it starts from, in h (on lego, from
-    # 0.175 h the decimation stops at 8.0x)
-    inner_depth: float = 0.3  # C-: the offset of M- it starts from, in h (on lego, from
-    # 0.275 h it stops at 4.9x; 0.4 h loses more thin parts: BENCHMARKS.md, issue 18)
+    outer_offset: float = 0.2  # C+: the offset of M+ it starts from, in h (a closer one
+    # leaves the decimation too little room: on lego it stops short of the ratio)
+    inner_depth: float = 0.3  # C-: the offset of M- it starts from, in h (a shallower one
+    # stops the decimation short of the ratio, a deeper one loses thin parts: BENCHMARKS.md)
     offset_tries: int = 3  # offsets tried, each offset_growth times farther than the last,
     offset_growth: float = 2.0  # while the decimation stops short of the ratio
     deepen: float = 0.25  # where an offset fails its check: this much deeper (h) ...
@@ -88,7 +87,7 @@ class Phases:
     grows the count (a retry, the fallback)."""
 
     def __init__(self, total: int = 0, enabled: bool = False) -> None:
-        from tqdm.auto import tqdm
+        from shells.progress import tqdm
         self.bar = tqdm(total=total, desc="shells-lod", unit="phase", leave=False,
                         disable=not enabled)
         self.running = False
@@ -447,7 +446,7 @@ def lod_outer(S: Mesh, lam: np.ndarray, ratio: float, origin: np.ndarray, h: flo
 def wrap_outer(S: Mesh, lam: np.ndarray, ratio: float, h: float) -> tuple[Mesh, dict]:
     """The alpha wrap of S at offset = 5th percentile of ``lam`` with the smallest alpha tried
     that gives at most len(S faces) / ratio triangles (closed and containing by construction,
-    but its filled concavities cost band samples: BENCHMARKS.md, issue 18)."""
+    but its filled concavities cost band samples: BENCHMARKS.md)."""
     target = max(int(len(S[1]) / ratio), 8)
     offset = float(np.percentile(lam, 5))
     alpha, tries = 2.0 * h, []

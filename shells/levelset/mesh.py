@@ -15,7 +15,8 @@ import trimesh
 from skimage import measure
 from trimesh.exchange.ply import export_ply, load_ply as _trimesh_load_ply
 
-from shells.errors import InputError, atomic_write
+from shells.errors import InputError
+from shells.files import atomic_write
 from shells.levelset.grid import check_aabb
 
 

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 import trimesh
 
-from shells.contraction import Similarity, contract, uncontract
+from shells.fields.contraction import Similarity, contract, uncontract
 
 CLAMP = 1.99  # contracted radius (radius units) the vertices are kept within
 TOL = 0.1  # largest chord deviation allowed, in grid spacings (field space)

@@ -19,11 +19,10 @@ renderer. Conventions:
 
 Depth peeling is one symbolic Dr.Jit loop (``@dr.syntax``); every iteration casts the rays that
 are still active against a single Mitsuba scene holding both shells and scatters closed intervals
-into an [R, K] buffer. Measured on 1M rays (dp_max = 8) against 61k triangles (two disjoint
-icospheres as M+, one inside as M-; 0.89 intervals per ray), llvm_ad_rgb on 2 shared CPU cores:
-symbolic loop 0.73 s, evaluated loop (one kernel per peel, like a Python loop) 0.70 s: a tie,
-Embree dominates. We keep the symbolic loop (no host round trip per peel; ``mode='evaluated'``
-runs the same code the other way).
+into an [R, K] buffer. On the CPU (llvm_ad_rgb) the symbolic loop and the evaluated one (one
+kernel per peel, like a Python loop) run equally fast, as Embree's ray casts dominate; the
+symbolic loop needs no host round trip per peel (``mode='evaluated'`` runs the same code the
+other way).
 """
 
 from __future__ import annotations

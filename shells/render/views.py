@@ -24,12 +24,12 @@ import drjit as dr
 import imageio.v3 as iio
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from shells import distributed
 from shells.config import RenderConfig
-from shells.errors import write_image
+from shells.files import write_image
 from shells.metrics import psnr, ssim
+from shells.progress import tqdm
 from shells.render.frame import rays_per_batch, render_image
 from shells.render.refine import render_refined, tile_rows
 from shells.render.shading import WHITE
@@ -66,7 +66,7 @@ def to_png(img: torch.Tensor) -> np.ndarray:  # [H, W, 3] float in [0, 1] -> uin
 
 
 def render_views(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
-                 cameras: Any,  # shells.cameras.Cameras of the split (possibly resized)
+                 cameras: Any,  # shells.data.cameras.Cameras of the split (possibly resized)
                  images: torch.Tensor | None,  # [N, H, W, 3] references, None = no metrics
                  cfg: RenderConfig,
                  mode: str,

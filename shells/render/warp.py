@@ -1,7 +1,7 @@
 """Where the samples of a ray go in an unbounded scene: a per-ray parameter s that advances
 evenly in contracted space (paper §4.7, after Mip-NeRF 360's disparity spacing).
 
-A ray o + t d (world, unit d) leaves the ball of interest (`shells.contraction`,
+A ray o + t d (world, unit d) leaves the ball of interest (`shells.fields.contraction`,
 centre c, radius R) at t_b = R max(ball exit, 1) (a ray that never enters the ball, or
 leaves it within one radius, gets t_b = R). Then
 

@@ -20,7 +20,7 @@ lost); with ``cull_weight``, samples of negligible weight get no gradient pass
 (`shells.render.volume.render_volume_rays`). Coarse-to-fine (Neuralangelo,
 ``coarse_to_fine_iters``): the hash levels are switched on one by one.
 
-The steps run in `shells.loop.optimise` (schedule, progress, logs, checkpoints, exact resume);
+The steps run in `shells.train.loop.optimise` (schedule, progress, logs, checkpoints, exact resume);
 the run directory is read and written through `shells.run`.
 """
 
@@ -28,178 +28,27 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
+import numpy as np
 import torch
-from tqdm import tqdm
 
 from shells import distributed
-from shells.config import Config, TrainConfig, object_config, toy_config
-from shells.datasets import (Dataset, backdrop_colour, has_transparency, load_dataset,
-                             read_frames, region_of_interest, says_unbounded)
-from shells.errors import InputError, write_json
-from shells.contraction import Similarity
+from shells.config import Config, TrainConfig
+from shells.data.datasets import Dataset, has_transparency, load_dataset
+from shells.errors import InputError
+from shells.files import write_json
 from shells.fields.hashgrid import drjit_on_calling_thread
 from shells.fields.network import ShellField
 from shells.fields.neus import may_have_density
-from shells.health import Stage1Health, probe_points, psnr_floor, solid_share
-from shells.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
 from shells.metrics import psnr
+from shells.progress import tqdm
 from shells.render.volume import SpanGrid, ray_aabb, render_volume_image, render_volume_rays
-from shells.run import RunDir, read_checkpoint, read_run, write_run
+from shells.run import RunDir, field_from_checkpoint, read_checkpoint, read_run, write_run
+from shells.train.health import Stage1Health, probe_points, psnr_floor, solid_share
+from shells.train.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
 
 MAX_DRAWS = 8  # "occupancy" sampler: at most this many rounds of pixels drawn per shard
-
-
-PRESETS = ("auto", "toy", "object", "paper")
-SCENES = ("auto", "bounded", "unbounded")
-
-
-def scene_similarity(data_dir: str | Path, scene: str = "auto") -> Similarity | None:
-    """``shells-train --scene``: the similarity of an unbounded scene (`region_of_interest`),
-    or None for a bounded one. "auto": unbounded when the data set says so
-    (`says_unbounded`). The training cameras must look at a common region
-    (`Similarity.from_cameras`: a one-line error otherwise, e.g. cameras inside the object)."""
-    if scene not in SCENES:
-        raise InputError(f"--scene {scene}: expected one of {list(SCENES)}")
-    if scene == "bounded":
-        return None
-    frames = read_frames(data_dir, "train")
-    if scene == "auto" and not says_unbounded(frames):
-        return None
-    c2w = frames.cameras.c2w.double().numpy()
-    Similarity.from_cameras(c2w[:, :3, 3], c2w[:, :3, 2],
-                            f"{frames.root}: the training cameras of an unbounded scene")
-    centre, radius = region_of_interest(frames)
-    return Similarity(centre, radius)
-
-
-def unbounded_settings(cfg: Config, sim: Similarity) -> None:
-    """Make ``cfg`` the config of an unbounded scene with similarity ``sim``: the contracted
-    field (`ShellField`, field.unbounded) and stage 1 sampling evenly in contracted space."""
-    cfg.update({"field": {"unbounded": True, "centre": list(sim.centre), "radius": sim.radius},
-                "train": {"sampler": "box"}}, "--scene unbounded")
-
-
-def preset_config(name: str, data_dir: str | Path, downscale: int,
-                  device: torch.device, sim: Similarity | None = None) -> tuple[Config, str]:
-    """The base config of ``shells-train --preset NAME`` and the preset's resolved name.
-
-    "auto": "paper" on CUDA, else "object": one recipe for every capture on the CPU, sized from
-    the training cameras and images (`object_config`: the hash grid from the cameras, the
-    schedule from the number of training pixels). "toy" is the short fixed schedule of the
-    demo. With ``sim`` (an unbounded scene) the object preset is sized for the field-space box
-    (centre +- 2 radius) and the toy preset's finest level doubles with one more level, so the
-    ball of interest gets the cells the toy box gets. Every preset takes the data's own
-    background where the images have it baked in (`data_background`)."""
-    if name not in PRESETS:
-        raise InputError(f"--preset {name}: expected one of {list(PRESETS)}")
-    if name == "paper" or (name == "auto" and device.type == "cuda"):
-        cfg, resolved = Config(), "paper"
-    elif name == "toy":
-        cfg, resolved = _toy_for(sim), "toy"
-    else:
-        cfg, resolved = _object_for(data_dir, downscale, sim), "object"
-    background = data_background(data_dir, downscale)
-    if background is not None:
-        cfg.update({"data": {"background": list(background)}}, "the data's backdrop")
-    return cfg, resolved
-
-
-def data_background(data_dir: str | Path, downscale: int) -> tuple[float, float, float] | None:
-    """The background a run of this data set is trained and rendered on, if the images fix it:
-    None when their alpha channel holds transparency (they are composited on
-    ``data.background``, and may be recomposited on random colours) or when no uniform backdrop
-    shows on their border; else the backdrop's colour (`backdrop_colour`), baked into RGB files
-    and into RGBA files whose alpha is opaque. Rendered on another colour, a baked-in backdrop
-    can only be reproduced by matter filling the box."""
-    data = load_dataset(data_dir, "train", downscale=downscale)
-    if has_transparency(data.alpha):
-        return None
-    return backdrop_colour(data.images)
-
-
-def _object_for(data_dir: str | Path, downscale: int, sim: Similarity | None) -> Config:
-    frames = read_frames(data_dir, "train")
-    cams = frames.cameras.downscaled(downscale)
-    pixels = float(len(cams) * cams.width * cams.height)
-    if sim is not None:  # sized for the field-space box, centre +- 2 radius
-        centre = torch.tensor(sim.centre, dtype=torch.float64)
-        distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
-        # the default Eikonal weight, not the bounded preset's 0.005: on fox the weak term
-        # gained 0.3 dB full ray but cost the band after stage 2 3.6 dB (16.4 against 20.0;
-        # BENCHMARKS.md, tenth session)
-        # and no culling (cull_weight): measured on lego only; and the L1 colour loss the
-        # preset was measured with on fox
-        cfg = object_config(4.0 * sim.radius, float(cams.fx.double().median()), distance,
-                            pixels, eikonal_weight=TrainConfig.eikonal_weight, cull_weight=0.0,
-                            color_loss="l1")
-        # the opacity's slope from the ray's samples and the free-space term: on fox 1/8 the
-        # best band after stage 2 when rays started at the ball, 22.20 dB against 22.15 full
-        # ray (the slope alone, 8000 steps: 22.01 against 23.03; with the paper's opacity
-        # stage 1 stalled near 15 dB; BENCHMARKS.md, eighteenth and fifteenth sessions);
-        # rays start on the start sphere (`start_sphere`: 25.29 band, 29.04 full ray)
-        cfg.update({"train": {"slope": "ray", "free_weight": 0.1},
-                    "field": {"near_radius": start_sphere(cams.c2w[:, :3, 3], sim)},
-                    "shell": UNBOUNDED_SHELLS, "render": UNBOUNDED_BAND,
-                    "finetune": {"shards": UNBOUNDED_SHARDS}},
-                   "object preset, unbounded")
-        return cfg
-    box = frames.aabb.double()
-    centre = 0.5 * (box[0] + box[1])
-    distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
-    focal = float(cams.fx.double().median())
-    return object_config(float((box[1] - box[0]).max()), focal, distance, pixels)
-
-
-# the unbounded object preset's shells: wide, for a soft field (fox 1/8: 67 % of the full-ray
-# weight at s > 0.03, 28 % at f < -0.1 and 14 % at f > 0.1, where the bounded caps,
-# dilate_zeta 0.25 and erode_zeta 0.1, cut it), with the 32 peels their layers need (render
-# dp_max): band after stage 2 25.29 -> 28.07 dB at 22.6 samples/px, full ray 29.04;
-# extraction 545 s instead of 101 (BENCHMARKS.md, nineteenth session)
-UNBOUNDED_SHELLS = {"beta_d": 1.0, "dilate_zeta": 1.0, "beta_e": 1.0, "erode_zeta": 0.5,
-                    "v_max": 0.1}
-# ... and their band sampling (render and stage 2): on the soft wall behind fox an interval of
-# the wide shells spans up to a few units of the ray parameter s (`shells.render.warp`), and the
-# cap of 16 samples per interval (n_max) was what bound: on a stage-2 field trained under that
-# cap, rendering with n_max 48 gave 28.60 dB, finer spacing under the cap 28.07 (unchanged);
-# stage 2 trained with these settings: band 29.64 dB at 50.8 samples/px, full ray 29.04
-# (BENCHMARKS.md, twentieth session)
-UNBOUNDED_BAND = {"dp_max": 32, "w_s": 0.04, "delta_s": 0.03, "n_max": 64}
-# ... and stage 2 draws its 4096 rays per step in 4 shards (`shells.loop` averages the shards'
-# gradients before the step): at ~52 samples a ray the elementwise work on one batch's
-# activations (200 k samples x 64) grew faster than the samples (profile: ReLU forward 15x,
-# its backward 6x for 2.3x the samples of n_max 16); on fox 1/8 stage 2 took 1555 s in 4
-# shards against 2965 s in one, for the same band (29.63 / 29.64 dB; `bench/stage2_shards.py`,
-# BENCHMARKS.md, twentieth session)
-UNBOUNDED_SHARDS = 4
-START_RADII = 2.0  # the unbounded object preset's rays start this many radii from the centre
-CAMERA_SHARE = 0.8  # ... or at this share of the nearest training camera's distance, if less
-
-
-def start_sphere(origins: torch.Tensor,  # [N, 3] training camera centres (world)
-                 sim: Similarity) -> float:
-    """``field.near_radius`` of the unbounded object preset: rays start where they enter the
-    sphere of START_RADII radii around the centre (`shells.render.warp.ray_span`), or of
-    CAMERA_SHARE of the nearest camera's distance when a camera is closer (no ray starts at a
-    camera: no room for floaters in front of it), never inside the ball of interest; returned
-    as a contracted radius. Started at the ball of interest, a ray that misses it began at its
-    point nearest the centre, past the wall beside the object in fox's oblique views; with
-    the start sphere of 2 radii fox 1/8 went from 22.15 to 29.04 dB full ray and from 22.20 to
-    25.29 dB band after stage 2 (BENCHMARKS.md, nineteenth session)."""
-    centre = torch.tensor(sim.centre, dtype=torch.float64)
-    nearest = float((origins.double() - centre).norm(dim=-1).min()) / sim.radius
-    rho = min(START_RADII, max(1.0, CAMERA_SHARE * nearest))
-    return 2.0 - 1.0 / rho
-
-
-def _toy_for(sim: Similarity | None) -> Config:
-    cfg = toy_config()
-    if sim is not None:
-        f = cfg.field
-        cfg.update({"field": {"max_resolution": 2 * f.max_resolution,
-                              "n_levels": f.n_levels + 1}}, "toy preset, unbounded")
-    return cfg
 
 
 def build_field(cfg: Config, aabb: torch.Tensor, device: torch.device) -> ShellField:
@@ -458,6 +307,28 @@ def stage1_grid(ckpt: dict[str, Any], field: ShellField, cfg: Config) -> SpanGri
     grid = SpanGrid(field.aabb, cfg.train.occ_resolution, cfg.train.occ_k)
     grid.load_state_dict(ckpt.get("extra") or {})
     return grid
+
+
+def test_renderer(run_dir: str | Path, data_dir: str | Path
+                  ) -> tuple[Dataset, Callable[[int], tuple[np.ndarray, np.ndarray]]]:
+    """The test split of ``data_dir`` on the run's background, and a function that renders its
+    view i with the run's stage-1 field as stage 1 samples it (full ray, the checkpoint's
+    occupancy grid where it has one): (colour [H, W, 3], opacity [H * W]) as numpy arrays."""
+    ckpt = read_checkpoint(RunDir(run_dir))
+    field, cfg = field_from_checkpoint(ckpt, "stage 1")
+    grid = stage1_grid(ckpt, field, cfg)
+    test = load_dataset(data_dir, "test", background=cfg.data.background)
+    H, W = test.images.shape[1:3]
+    bg = torch.tensor(cfg.data.background)
+
+    def render(i: int) -> tuple[np.ndarray, np.ndarray]:
+        ro, rd = test.cameras.pixel_rays(i, 1)
+        with torch.no_grad():
+            img = render_volume_image(field, ro, rd, cfg.train.n_samples,
+                                      cfg.train.n_importance, bg, grid=grid)
+        return img["color"].reshape(H, W, 3).numpy(), img["opacity"].numpy()
+
+    return test, render
 
 
 def evaluate(field: ShellField, data: Dataset, tc: TrainConfig, max_views: int = 0,

@@ -1,7 +1,7 @@
 """Data-set loaders: Blender / NeRF-synthetic and Instant-NGP ``transforms.json``.
 
 Both formats store OpenGL camera-to-world matrices; they are converted once, here, to the
-OpenCV convention of `shells.cameras`. Poses stay in the world units of the file.
+OpenCV convention of `shells.data.cameras`. Poses stay in the world units of the file.
 
 Blender (``transforms_{split}.json``): ``camera_angle_x`` gives fx = fy = 0.5 W / tan(0.5 angle),
 cx = W / 2, cy = H / 2; frames hold ``file_path`` (".png" may be omitted) and
@@ -46,8 +46,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shells.cameras import Cameras, opengl_to_opencv, subpixel_offsets
-from shells.errors import InputError, read_json
+from shells.data.cameras import Cameras, opengl_to_opencv, subpixel_offsets
+from shells.errors import InputError
+from shells.files import read_json
 
 BLENDER_AABB = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))  # NeRF-synthetic convention
 NGP_SCALE = 0.33  # instant-ngp's default world -> unit-cube scale

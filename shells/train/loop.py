@@ -37,13 +37,13 @@ from pathlib import Path
 from typing import Any, Callable
 
 import torch
-from tqdm.auto import tqdm
 
 from shells import distributed
 from shells.config import COLOR_LOSSES, Config
 from shells.errors import InputError, Interrupted
 from shells.fields.hashgrid import HashGrid
 from shells.fields.network import ShellField
+from shells.progress import tqdm
 from shells.run import append_log, load_field_state, save_checkpoint, truncate_log
 
 ShardLoss = Callable[[torch.Generator], tuple[torch.Tensor, dict[str, float]]]
@@ -74,10 +74,10 @@ class Schedule:
 def make_optimizer(field: ShellField, lr_grid: float, lr_mlp: float) -> torch.optim.Adam:
     """Adam with two groups: hash tables (high lr, as Instant-NGP) and MLP weights.
 
-    torch's fused kernel (one pass over each tensor): on the CPU the default per-tensor Adam
-    took 7.6 ms a step for lego 1/8's 2.1 M parameters at 2 threads, the fused one 0.6 ms, and
-    stage 1 on lego 1/8 ran 6 % more rays/s (`bench/adam_speed.py`; BENCHMARKS.md, "Fused
-    Adam"); the same update to float32 rounding (`tests/test_training.py`)."""
+    torch's fused kernel (one pass over each tensor): on the CPU it takes a small fraction of
+    the default per-tensor Adam's time a step, which shows in stage 1's rays/s
+    (BENCHMARKS.md, method notes); the same update to float32 rounding
+    (`tests/test_training.py`)."""
     grid_ids = {id(p) for m in field.modules() if isinstance(m, HashGrid) for p in m.parameters()}
     grid = [p for p in field.parameters() if id(p) in grid_ids]
     mlp = [p for p in field.parameters() if id(p) not in grid_ids]
@@ -103,8 +103,8 @@ def step_generator(seed: int, step: int, device: torch.device,
     differ there: shard k adds k x SHARD_STRIDE, an odd constant whose multiples (mod 2^32) lie
     far from every step offset a run reaches (shard k of step t would meet shard 0 of step
     t + k x SHARD_STRIDE mod 2^32, a billion steps away for k = 1, 2; nearly 2 million for
-    k < 1024). Before, the shards of a step added k x 2^40, which the CPU dropped: they drew the
-    same rays."""
+    k < 1024). A stride of 2^32 or a multiple of it (e.g. 2^40) would be dropped on the CPU, and
+    the shards of a step would draw the same rays."""
     return torch.Generator(device=device).manual_seed(seed * 1_000_003 + step
                                                       + shard * SHARD_STRIDE)
 

@@ -1,7 +1,7 @@
 """Camera paths for videos: an orbit or a spiral around the scene, an interpolation through the
 training cameras, or a nerfstudio ``camera_path.json``.
 
-All paths are built from the training cameras (`shells.cameras.Cameras`, OpenCV axes) and the
+All paths are built from the training cameras (`shells.data.cameras.Cameras`, OpenCV axes) and the
 scene box:
 
 * up: the mean of the training cameras' up vectors (-y column of c2w), normalised, as
@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation, Slerp
 
-from shells.cameras import Cameras, look_at, opengl_to_opencv, pinhole_cameras
+from shells.data.cameras import Cameras, look_at, opengl_to_opencv, pinhole_cameras
 from shells.errors import InputError
 
 NAMES = ("orbit", "spiral", "interpolate")

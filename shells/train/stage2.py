@@ -3,7 +3,7 @@
 Rays are cast against the fixed shells and rendered by the differentiable torch band renderer
 (`shells.render.band.render_band_rays`: the Dr.Jit renderer's ray casting, sample placement
 and solid-end rule), and the field is trained with the colour loss alone (L1 unless
-`finetune.color_loss` says "l2"). The steps run in `shells.loop.optimise`; the checkpoint
+`finetune.color_loss` says "l2"). The steps run in `shells.train.loop.optimise`; the checkpoint
 goes to RUN/finetune.pt (stage 1's checkpoint.pt is left untouched), with resume. Runs on the
 CPU (llvm_ad_rgb) or on CUDA (cuda_ad_rgb): the Mitsuba variant follows the torch device
 unless `render.variant` names one.
@@ -18,11 +18,12 @@ import torch
 
 from shells import distributed
 from shells.config import FinetuneConfig, RenderConfig, override_config
-from shells.datasets import Dataset, load_dataset
+from shells.data.datasets import Dataset, load_dataset
 from shells.device import mitsuba_variant, torch_device
-from shells.errors import InputError, write_json
+from shells.errors import InputError
+from shells.files import write_json
 from shells.fields.network import ShellField
-from shells.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
+from shells.train.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
 from shells.render.band import render_band_rays
 from shells.render.raycast import ShellScene
 from shells.run import RunDir, field_from_checkpoint, load_shells, read_checkpoint, read_run

@@ -5,16 +5,16 @@ Steps (each with a progress bar):
 
 1. the photos are copied to DATA/images (optionally shrunk by an integer factor, area average);
 2. SIFT features on the CPU, one shared camera (COLMAP's ``SIMPLE_RADIAL`` model by default:
-   f, cx, cy, k1; ``OPENCV`` adds fy, k2, p1, p2 but registered only 2 of lego's 87 views
-   where SIMPLE_RADIAL registered 85), exhaustive or sequential matching, then guided matching
-   (a second pass along each pair's verified epipolar geometry: more matches for weakly linked
-   views; it makes matching about 1.5-3x slower) and two-view RANSAC at ``max_error``
+   f, cx, cy, k1; ``OPENCV`` adds fy, k2, p1, p2 but registers only a few of lego's views
+   where SIMPLE_RADIAL registers nearly all), exhaustive or sequential matching, then guided
+   matching (a second pass along each pair's verified epipolar geometry: more matches for
+   weakly linked views; it makes matching about 1.5-3x slower) and two-view RANSAC at ``max_error``
    pixels (2; COLMAP's default is 4);
 3. incremental mapping (one thread, a fixed random seed: the same photos give the same poses)
    with the same ``max_error`` for the first pair, for triangulation and for dropping
    observations after bundle adjustment (3x it for registering a new view, COLMAP's ratio): on
-   lego's 87 views at 400x400 all 87 are within 1 degree / 1 % instead of 82 with COLMAP's
-   defaults (BENCHMARKS.md); the reconstruction with the most registered images is kept; fewer
+   lego at 400x400 it brings every view within 1 degree / 1 %, which COLMAP's defaults miss for
+   a few views (BENCHMARKS.md); the reconstruction with the most registered images is kept; fewer
    than half of the photos (or fewer than 3) registered is an error;
 4. poses oriented and scaled as nerfstudio does: up = the mean of the cameras' up vectors,
    turned to +z; the centre is the point nearest to all optical axes (Instant-NGP's
@@ -39,10 +39,11 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
-from shells.datasets import area_downscale
-from shells.errors import InputError, write_image
+from shells.data.datasets import area_downscale
+from shells.errors import InputError
+from shells.files import write_image
+from shells.progress import tqdm
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 

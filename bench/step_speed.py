@@ -1,0 +1,225 @@
+"""Training step time of one trained field: stage 1 under several sampler settings or grid
+sizes, stage 2 against the number of ray shards a step is drawn in (no optimiser step).
+
+    OMP_NUM_THREADS=1 python -m bench.step_speed stage1 RUN [--data DATA --downscale 8]
+                                                 [--sizes [--profile]]
+    python -m bench.step_speed stage2 RUN [--shards 1,4,1,8] [--steps 4] [--config X.json]
+                                          [--calling-thread]
+
+RUN's training split (run.json's data set and downscale unless ``--data`` / ``--downscale``
+say otherwise) is composited on the run's background. Each subcommand's --help says more.
+Run it alone: the steps use all the cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import sys
+import time
+from types import SimpleNamespace
+
+import torch
+
+from bench.report import emit_json, run_command, subcommands
+from shells.data.datasets import load_dataset
+from shells.errors import InputError
+from shells.run import RunDir, field_from_checkpoint, read_checkpoint, read_run
+
+SIZES = [("fresh, the run's sizes", {}),
+         ("fresh, 8 levels, 2^18, finest 256 (lego 1/8)",
+          dict(n_levels=8, log2_hashmap_size=18, max_resolution=256)),
+         ("fresh, 16 levels, 2^19, finest 512",
+          dict(n_levels=16, log2_hashmap_size=19, max_resolution=512)),
+         ("fresh, 9 levels, 2^17, finest 512",
+          dict(n_levels=9, log2_hashmap_size=17, max_resolution=512))]
+
+SETTINGS = [("box, 32 + 16, 4096 regulariser points", "box", 32, 16, 4096, 0.0),
+            ("occupancy, 32 + 16, 2048", "occupancy", 32, 16, 2048, 0.0),
+            ("occupancy, 32 + 16, 2048, culled below 1e-4", "occupancy", 32, 16, 2048, 1e-4),
+            ("occupancy, 32 + 16, 2048, culled below 1e-3", "occupancy", 32, 16, 2048, 1e-3),
+            ("occupancy, 16 + 16, 2048", "occupancy", 16, 16, 2048, 0.0),
+            ("occupancy, 16 + 16, 2048, culled below 1e-4", "occupancy", 16, 16, 2048, 1e-4),
+            ("occupancy, 24 + 8, 2048", "occupancy", 24, 8, 2048, 0.0),
+            ("occupancy, 16 + 16, 1024", "occupancy", 16, 16, 1024, 0.0)]
+
+
+def open_run(path: str, data: str | None = None, downscale: int | None = None
+             ) -> SimpleNamespace:
+    """RUN's stage-1 checkpoint, its field (train mode) and config, and the training split's
+    pixels on the run's background."""
+    run = RunDir(path)
+    meta = read_run(run)
+    ckpt = read_checkpoint(run, "stage1")
+    field, cfg = field_from_checkpoint(ckpt, path)
+    field.train()
+    train = load_dataset(data or meta["data"], "train", background=cfg.data.background,
+                         downscale=downscale or int(meta["downscale"]))
+    return SimpleNamespace(run=run, ckpt=ckpt, field=field, cfg=cfg, data=train,
+                           pixels=train.images.reshape(-1, 3),
+                           bg=torch.tensor(cfg.data.background, dtype=torch.float32))
+
+
+def stage1(a: argparse.Namespace) -> int:
+    """Stage-1 step time: RUN is a stage-1 run of the "occupancy" sampler (its checkpoint
+    holds the occupancy grid). Each sampler setting of SETTINGS runs 12 steps (forward +
+    backward of `shells.train.stage1.stage1_step`) and times the last 10; prints ms/step, rays/s
+    and rays per step. ``--sizes``: instead, the run's sampler settings on fresh fields of other
+    hash-grid sizes (SIZES; the same rays and grid; 10 steps, medians of the last 8), forward +
+    backward and the Adam step timed apart; ``--profile`` adds a torch.profiler table of 3
+    steps of the trained field."""
+    from shells.train.stage1 import stage1_grid, stage1_step
+
+    r = open_run(a.run, a.data, a.downscale)
+    field, cfg, data, pixels, bg = r.field, r.cfg, r.data, r.pixels, r.bg
+    grid = stage1_grid(r.ckpt, field, cfg)
+    if grid is None:
+        raise InputError(f"{a.run}: not a run of the 'occupancy' sampler")
+    if a.sizes:
+        return grid_sizes(field, cfg, data, pixels, bg, grid, a.profile)
+    print("| configuration | ms/step | rays/s | rays/step | samples with gradient |\n"
+          "|---|---|---|---|---|")
+    for name, sampler, ns, ni, reg, cull in SETTINGS:
+        tc = dataclasses.replace(cfg.train, sampler=sampler, n_samples=ns, n_importance=ni,
+                                 reg_points=reg, cull_weight=cull)
+        times, rays, grads, samples = [], 0.0, 0.0, 0.0
+        for k in range(12):
+            t = time.perf_counter()
+            loss, logs = stage1_step(field, data, pixels, tc, bg,
+                                     torch.Generator().manual_seed(k),
+                                     grid if sampler == "occupancy" else None)
+            loss.backward()
+            field.zero_grad()
+            if k >= 2:
+                times.append(time.perf_counter() - t)
+                rays += logs["rays"]
+                grads += logs["grad_samples"]
+                samples += logs["samples"]
+        dt = sum(times)
+        print(f"| {name} | {dt / len(times) * 1000:.0f} | {rays / dt:.0f} | "
+              f"{rays / len(times):.0f} | {grads / max(samples, 1):.1%} |", flush=True)
+    return 0
+
+
+def grid_sizes(trained, cfg, data, pixels, bg, grid, profile: bool) -> int:
+    """``stage1 --sizes``: forward + backward and Adam ms of fresh fields of SIZES."""
+    from shells.train.loop import make_optimizer
+    from shells.train.stage1 import build_field, stage1_step
+
+    print("| field | parameters | forward + backward ms | Adam ms |\n|---|---|---|---|")
+    for name, change in [("the trained field", None)] + SIZES:
+        if change is None:
+            field = trained
+        else:
+            c = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, **change))
+            field = build_field(c, data.aabb, torch.device("cpu"))
+        field.train()
+        opt = make_optimizer(field, cfg.train.lr, cfg.train.lr_mlp)
+        fb, ad = [], []
+        for k in range(10):
+            t0 = time.perf_counter()
+            loss, _ = stage1_step(field, data, pixels, cfg.train, bg,
+                                  torch.Generator().manual_seed(k), grid)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            t1 = time.perf_counter()
+            opt.step()
+            if k >= 2:
+                fb.append(t1 - t0)
+                ad.append(time.perf_counter() - t1)
+        n = sum(q.numel() for q in field.parameters())
+        print(f"| {name} | {n / 1e6:.2f} M | {1000 * sorted(fb)[len(fb) // 2]:.0f} | "
+              f"{1000 * sorted(ad)[len(ad) // 2]:.0f} |", flush=True)
+    if profile:
+        from torch.profiler import ProfilerActivity
+        from torch.profiler import profile as torch_profile
+
+        with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+            for k in range(3):
+                loss, _ = stage1_step(trained, data, pixels, cfg.train, bg,
+                                      torch.Generator().manual_seed(k), grid)
+                loss.backward()
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+    return 0
+
+
+def stage2(a: argparse.Namespace) -> int:
+    """Stage-2 step time against the number of ray shards (`finetune.shards`): RUN has a
+    stage-1 checkpoint and shells (`shells-extract`). For each shard count in turn, one warm-up
+    step and then ``--steps`` timed steps of `shells.train.stage2.stage2_step` over the run's
+    `finetune.batch_rays` rays, forward and backward with the shards' gradients averaged as
+    `shells.train.loop` does (no optimiser step, so the field stays the same). ``--config``: a
+    JSON file with `render` / `finetune` sections overriding the run's. ``--calling-thread``:
+    the steps run in `drjit_on_calling_thread` (Dr.Jit's kernels, the shell casts among them,
+    on the calling thread alone), as stage 1 runs its steps. Prints s/step, rays/s and
+    samples/s per shard count as JSON; counts listed twice show the drift of the machine."""
+    from shells.config import override_config
+    from shells.device import mitsuba_variant
+    from shells.fields.hashgrid import drjit_on_calling_thread
+    from shells.run import load_shells
+
+    r = open_run(a.run)
+    cfg = override_config(r.cfg, a.config, ("finetune", "render"), "bench.step_speed stage2")
+    scene = load_shells(r.run, mitsuba_variant(cfg.render.variant, torch.device("cpu")), "fine")
+    rows = []
+    with drjit_on_calling_thread() if a.calling_thread else contextlib.nullcontext():
+        for shards in (int(x) for x in a.shards.split(",")):
+            rows.append(time_shards(r.field, scene, r.data, r.pixels, cfg, r.bg, shards,
+                                    a.steps))
+    emit_json({"run": a.run, "batch_rays": cfg.finetune.batch_rays,
+               "render": {k: getattr(cfg.render, k) for k in ("dp_max", "w_s", "delta_s",
+                                                               "n_max")},
+               "threads": torch.get_num_threads(), "calling_thread": a.calling_thread,
+               "steps": a.steps, "rows": rows})
+    return 0
+
+
+def time_shards(field, scene, data, pixels, cfg, background, shards: int,
+                steps: int) -> dict[str, float]:
+    """One warm-up step, then ``steps`` timed ones of ``shards`` shards."""
+    from shells.train.stage2 import stage2_step
+
+    fc = dataclasses.replace(cfg.finetune, shards=shards)
+    gen = torch.Generator().manual_seed(0)
+
+    def step() -> float:
+        n = 0.0
+        for _ in range(shards):
+            loss, logs = stage2_step(field, scene, data, pixels, fc, cfg.render, background,
+                                     gen)
+            (loss / shards).backward()
+            n += logs["spp"] * (fc.batch_rays // shards) / fc.pixel_samples
+        field.zero_grad(set_to_none=True)
+        return n
+
+    step()
+    samples = 0.0
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        samples += step()
+    dt = (time.perf_counter() - t0) / steps
+    print(f"shards {shards}: {dt:.2f} s/step", file=sys.stderr, flush=True)
+    return {"shards": shards, "s_per_step": dt, "rays_per_s": fc.batch_rays / dt,
+            "samples_per_s": samples / steps / dt}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p, sub = subcommands("python -m bench.step_speed", __doc__.split("\n\n")[0],
+                         [stage1, stage2])
+    sp = sub["stage1"]
+    sp.add_argument("--data", default=None, help="default: RUN's data set (run.json)")
+    sp.add_argument("--downscale", type=int, default=None, help="default: RUN's")
+    sp.add_argument("--sizes", action="store_true", help="fresh fields of other grid sizes")
+    sp.add_argument("--profile", action="store_true", help="with --sizes: a profiler table")
+    sp = sub["stage2"]
+    sp.add_argument("--shards", default="1,4,1,8", help="comma-separated shard counts")
+    sp.add_argument("--steps", type=int, default=4, help="timed steps per shard count")
+    sp.add_argument("--config", default=None, help="JSON with render / finetune overrides")
+    sp.add_argument("--calling-thread", action="store_true",
+                    help="Dr.Jit's kernels on the calling thread alone")
+    return run_command(p, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

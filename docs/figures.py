@@ -1,0 +1,107 @@
+"""The README's pictures from `shells-render` and `shells-animate` outputs.
+
+    python docs/figures.py demo --data DATA --full RENDER_DIR --band RENDER_DIR --out docs/demo.png
+        [--view 0 [--view 3 ...]] [--downscale 1] [--scale 3]
+    python docs/figures.py animation OUT.png DIR[:LABEL] [DIR[:LABEL] ...]
+        [--frames 0 8 16 24] [--size 160]
+
+demo: ground truth | full-ray render | band render | band samples per pixel, one row per view.
+animation: chosen frames of each animation in a row, with its ms/frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+
+
+def demo(args: argparse.Namespace) -> int:
+    """Ground truth | full-ray render | band render | band samples per pixel, one row per
+    ``--view``. RENDER_DIRs are `shells-render` outputs (r_###.png, spp_###.png); DATA is the
+    data set whose test split was rendered (at ``--downscale``). Images are upscaled by
+    ``--scale`` (nearest) so 64x64 toys stay legible."""
+    from shells.data.datasets import load_dataset
+
+    test = load_dataset(args.data, "test", downscale=args.downscale)
+    rows = []
+    for view in args.view or [0]:
+        gt = (np.clip(test.images[view].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8)
+        name = f"{view:03d}.png"
+        tiles = [gt, iio.imread(Path(args.full) / f"r_{name}")[..., :3],
+                 iio.imread(Path(args.band) / f"r_{name}")[..., :3],
+                 iio.imread(Path(args.band) / f"spp_{name}")[..., :3]]
+        gap = np.full((gt.shape[0], 2, 3), 255, np.uint8)
+        rows += [np.concatenate(sum(([t, gap] for t in tiles), [])[:-1], axis=1),
+                 np.full((2, len(tiles) * (gt.shape[1] + 2) - 2, 3), 255, np.uint8)]
+    row = np.concatenate(rows[:-1], axis=0)
+    row = np.repeat(np.repeat(row, args.scale, 0), args.scale, 1)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(args.out, row)
+    print(f"wrote {args.out} ({row.shape[1]}x{row.shape[0]})")
+    return 0
+
+
+def animation(args: argparse.Namespace) -> int:
+    """Chosen frames of each animation in a row. Each DIR is a `shells-animate` output folder
+    (r_###.png, metrics.json); frame indices past an animation's end are clipped to its last
+    frame. Every frame is scaled to ``--size`` pixels high."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = []
+    for spec in args.dirs:
+        folder, _, label = spec.partition(":")
+        folder = Path(folder)
+        m = json.loads((folder / "metrics.json").read_text())
+        ks = [min(k, m["frames"] - 1) for k in args.frames]
+        rows.append((label or folder.name, m, [iio.imread(folder / f"r_{k:03d}.png")[..., :3]
+                                               for k in ks], ks))
+    n = len(args.frames)
+    fig, axes = plt.subplots(len(rows), n, figsize=(1.9 * n, 2.05 * len(rows)), squeeze=False)
+    for r, (label, m, imgs, ks) in enumerate(rows):
+        for c, (img, k) in enumerate(zip(imgs, ks)):
+            ax = axes[r][c]
+            ax.imshow(img, interpolation="lanczos")
+            ax.set_xticks([]), ax.set_yticks([])
+            ax.set_title(f"frame {k}", fontsize=8)
+            if c == 0:
+                ax.set_ylabel(f"{label}\n{m['ms_per_frame']:.0f} ms/frame", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(args.out, dpi=args.size / 1.6)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python docs/figures.py",
+                                description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    for fn in (demo, animation):
+        doc = " ".join(fn.__doc__.split())
+        sub.add_parser(fn.__name__, help=doc.split(". ")[0], description=doc).set_defaults(fn=fn)
+    sp = sub.choices["demo"]
+    sp.add_argument("--data", required=True)
+    sp.add_argument("--full", required=True, help="full-mode render directory")
+    sp.add_argument("--band", required=True, help="band-mode render directory")
+    sp.add_argument("--view", type=int, action="append", default=None,
+                    help="a test view (repeatable: one row each; default 0)")
+    sp.add_argument("--downscale", type=int, default=1)
+    sp.add_argument("--scale", type=int, default=3)
+    sp.add_argument("--out", required=True)
+    sp = sub.choices["animation"]
+    sp.add_argument("out")
+    sp.add_argument("dirs", nargs="+", metavar="DIR[:LABEL]")
+    sp.add_argument("--frames", type=int, nargs="+", default=[0, 8, 16, 24])
+    sp.add_argument("--size", type=int, default=160)
+    args = p.parse_args(argv)
+    return args.fn(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The data side: cameras, data sets, camera paths, COLMAP."""
