@@ -29,7 +29,7 @@ from scenes import make_scene
 from scenes.parts import part_scores
 from shells.config import read_config_file
 from shells.presets import preset_config
-from shells.train.stage1 import test_renderer, train
+from shells.train.stage1 import stage1_renderer, train
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     run = out / "run"
     shutil.rmtree(run, ignore_errors=True)
     summary = train(data, run, cfg, cpu, progress=False, evaluate_test=False)
-    test, render = test_renderer(run, data)
+    test, render = stage1_renderer(run, data)
 
     parts = part_scores(data, test.images.numpy(), test.alpha.numpy(), render)
     if a.picture:

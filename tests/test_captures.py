@@ -17,7 +17,7 @@ from scenes import make_scene
 from scenes.parts import objects_kept, part_scores
 from shells.data.datasets import has_transparency
 from shells.presets import preset_config
-from shells.train.stage1 import test_renderer, train
+from shells.train.stage1 import stage1_renderer, train
 
 pytestmark = pytest.mark.slow
 
@@ -33,7 +33,7 @@ def test_the_default_keeps_every_object(tmp_path, scene, backdrop):
     summary = train(data, tmp_path / "run", cfg, cpu, progress=False, evaluate_test=False)
     assert summary["health"]["ok"], summary["health"]["warnings"]
     assert summary["background"]["random"] == (backdrop is None)
-    test, render = test_renderer(tmp_path / "run", data)
+    test, render = stage1_renderer(tmp_path / "run", data)
     alpha = test.alpha.numpy() if has_transparency(test.alpha) else None
     parts = part_scores(data, test.images.numpy(), alpha, render)
     kept = objects_kept(parts)

@@ -18,7 +18,7 @@ import torch
 from scenes import make_scene
 from scenes.parts import PARTS, part_scores
 from shells.presets import preset_config
-from shells.train.stage1 import test_renderer, train
+from shells.train.stage1 import stage1_renderer, train
 
 pytestmark = pytest.mark.slow
 
@@ -37,7 +37,7 @@ def trained(tmp_path_factory: pytest.TempPathFactory):
 
 def test_the_thin_rod_and_plate_are_kept(trained) -> None:
     data, run = trained
-    test, render = test_renderer(run, data)
+    test, render = stage1_renderer(run, data)
     parts = part_scores(data, test.images.numpy(), test.alpha.numpy(), render)
     sphere, rod, plate = (parts[k] for k in PARTS)
     assert rod["pixels"] >= 20 and plate["pixels"] >= 20, "too few rod / plate pixels"

@@ -309,7 +309,7 @@ def stage1_grid(ckpt: dict[str, Any], field: ShellField, cfg: Config) -> SpanGri
     return grid
 
 
-def test_renderer(run_dir: str | Path, data_dir: str | Path
+def stage1_renderer(run_dir: str | Path, data_dir: str | Path
                   ) -> tuple[Dataset, Callable[[int], tuple[np.ndarray, np.ndarray]]]:
     """The test split of ``data_dir`` on the run's background, and a function that renders its
     view i with the run's stage-1 field as stage 1 samples it (full ray, the checkpoint's
