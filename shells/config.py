@@ -142,6 +142,10 @@ class TrainConfig:
     checkpoint_every: int = 500  # steps between atomic checkpoints
     log_every: int = 50  # steps between JSON-lines log records
     eval_max_views: int = 0  # test views scored at the end (0 = all)
+    curve_every: int = 0  # steps between points of the running test curve (RUN/train_curve.jsonl:
+    # PSNR on a fixed pixel subset of curve_views test views against total wall time); 0 = off
+    curve_views: int = 3  # test views of the running curve, evenly spaced over the split
+    curve_pixels: int = 16384  # pixels per view of the running curve, fixed random ones
 
 
 @dataclass
@@ -391,7 +395,8 @@ _RULES = [_rule(k, *r) for k, r in [
     *[(f"train.{k}", _at_least(0)) for k in ("n_importance", "eikonal_weight",
                                             "kernel_smooth_weight", "normal_weight",
                                             "smooth_eps", "eval_max_views", "offband_weight",
-                                            "cull_weight", "free_weight")],
+                                            "cull_weight", "free_weight", "curve_every")],
+    *[(f"train.{k}", _at_least(1)) for k in ("curve_views", "curve_pixels")],
     ("train.free_transmittance", ((lambda v: 0 < v < 1), "must be in (0, 1)")),
     *[(f"{s}.color_loss", ((lambda v: v in COLOR_LOSSES), f"must be one of {COLOR_LOSSES}"))
       for s in ("train", "finetune")],

@@ -113,7 +113,8 @@ def object_config(extent: float, focal_px: float, distance: float, pixels: float
                                     reg_points=2048, eikonal_weight=eikonal_weight,
                                     random_background=True, cull_weight=cull_weight,
                                     color_loss=color_loss,
-                                    occ_rescue=0.05, checkpoint_every=500, log_every=50)
+                                    occ_rescue=0.05, checkpoint_every=500, log_every=50,
+                                    curve_every=500)
     cfg.shell = dataclasses.replace(cfg.shell, resolution=256, beta_e=0.8)
     cfg.finetune = dataclasses.replace(cfg.finetune,
                                        iters=object_finetune_iters(doublings, pixels),
@@ -216,14 +217,21 @@ def unbounded_settings(cfg: Config, sim: Similarity) -> None:
                 "train": {"sampler": "box"}}, "--scene unbounded")
 
 
+BACKGROUND_VIEWS = 16  # training views read to tell the data's background (evenly spaced)
+
+
 def data_background(data_dir: str | Path, downscale: int) -> tuple[float, float, float] | None:
     """The background a run of this data set is trained and rendered on, if the images fix it:
     None when their alpha channel holds transparency (they are composited on
     ``data.background``, and may be recomposited on random colours) or when no uniform backdrop
     shows on their border; else the backdrop's colour (`backdrop_colour`), baked into RGB files
     and into RGBA files whose alpha is opaque. Rendered on another colour, a baked-in backdrop
-    can only be reproduced by matter filling the box."""
-    data = load_dataset(data_dir, "train", downscale=downscale)
+    can only be reproduced by matter filling the box. Read from BACKGROUND_VIEWS views spread
+    over the training split (all of them when it has fewer)."""
+    n = len(read_frames(data_dir, "train").paths)
+    k = min(n, BACKGROUND_VIEWS)
+    views = sorted({round(i * (n - 1) / max(1, k - 1)) for i in range(k)})
+    data = load_dataset(data_dir, "train", downscale=downscale, views=views)
     if has_transparency(data.alpha):
         return None
     return backdrop_colour(data.images)

@@ -99,6 +99,11 @@ class RunDir:
     def log(self, stage: str = "stage1") -> Path:
         return self.root / {"stage1": "train_log.jsonl", "stage2": "finetune_log.jsonl"}[stage]
 
+    @property
+    def curve(self) -> Path:
+        """Stage 1's running test curve (JSON lines: step, wall_s, psnr)."""
+        return self.root / "train_curve.jsonl"
+
     def summary(self, stage: str = "stage1") -> Path:
         return self.root / {"stage1": "train_summary.json",
                             "stage2": "finetune_summary.json"}[stage]
@@ -180,13 +185,16 @@ def run_id(run: RunDir) -> str | None:
 # ---------------------------------------------------------------------------------------------
 
 def save_checkpoint(path: Path, field: ShellField, opt: torch.optim.Optimizer, step: int,
-                    cfg: Config, extra: dict[str, Any] | None = None) -> None:
+                    cfg: Config, extra: dict[str, Any] | None = None,
+                    wall_s: float | None = None) -> None:
     """Field, optimiser, step, config and a stage's extra state (its occupancy grid) in one
     file, written atomically, with the format version and the id of the run it is in (RUN =
-    the file's folder)."""
+    the file's folder); ``wall_s``: the stage's wall time so far, over all its sittings."""
     state = {"format": FORMAT_VERSION, "run_id": run_id(RunDir(Path(path).parent)),
              "step": step, "field": field.state_dict(), "optimizer": opt.state_dict(),
              "config": cfg.to_dict(), "aabb": field.aabb.detach().cpu()}
+    if wall_s is not None:
+        state["wall_s"] = wall_s
     if extra is not None:
         state["extra"] = extra
     def write(p: Path) -> None:

@@ -114,6 +114,15 @@ def test_blender_splits(tmp_path):
         load_dataset(root, "tset")
 
 
+def test_a_subset_of_views_is_those_frames_of_the_split(tmp_path):
+    root = write_blender(tmp_path, splits=(("train", 4),))
+    full, part = load_dataset(root, "train"), load_dataset(root, "train", views=[3, 1])
+    assert part.names == [full.names[3], full.names[1]]
+    assert torch.equal(part.images, full.images[[3, 1]])
+    assert torch.equal(part.alpha, full.alpha[[3, 1]])
+    assert torch.equal(part.cameras.c2w, full.cameras.c2w[[3, 1]])
+
+
 def test_downscale_area_average(tmp_path):
     # 5x3 image, factor 2 -> 2x1 (the last column and row are cropped)
     root = write_blender(tmp_path, splits=(("train", 1),), w=5, h=3)

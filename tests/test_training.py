@@ -96,6 +96,52 @@ def test_kill_and_resume_matches_uninterrupted(tiny_blender, tmp_path, sampler):
     assert steps == [1, 2, 3, 4, 5, 6]  # one record per step, none duplicated by the resume
 
 
+def test_running_curve_scores_fixed_test_pixels_without_touching_training(tiny_blender,
+                                                                            tmp_path):
+    """RUN/train_curve.jsonl: every curve_every steps the PSNR of a fixed pixel subset of
+    evenly spaced test views; with every pixel drawn it is the views' pooled PSNR as
+    `evaluate` renders them. The curve leaves the training's random streams alone, survives a
+    kill / resume without duplicate points, and wall_s adds up over the sittings."""
+    from shells.train.stage1 import evaluate
+    from shells.data.datasets import load_dataset
+
+    cpu = torch.device("cpu")
+
+    def cfg(curve: bool):
+        c = _tiny_config()
+        if curve:  # the tiny set's test views are 16 x 16: 256 pixels is all of them
+            c.update({"train": {"curve_every": 2, "curve_views": 3, "curve_pixels": 256}})
+        return c
+
+    with_curve = train(tiny_blender, tmp_path / "a", cfg(True), cpu, progress=False,
+                       evaluate_test=False)
+    train(tiny_blender, tmp_path / "b", cfg(False), cpu, progress=False, evaluate_test=False)
+    fa, _ = load_field(tmp_path / "a")
+    fb, _ = load_field(tmp_path / "b")
+    for (name, pa), (_, pb) in zip(fa.state_dict().items(), fb.state_dict().items()):
+        torch.testing.assert_close(pa, pb, rtol=0, atol=0, msg=name)
+    assert not (tmp_path / "b" / "train_curve.jsonl").exists()
+
+    points = [json.loads(ln) for ln in (tmp_path / "a" / "train_curve.jsonl").open()]
+    assert [p["step"] for p in points] == [2, 4, 6]
+    assert all(p["views"] == [0, 1] and p["pixels"] == 512 for p in points)  # 2 test views
+    walls = [p["wall_s"] for p in points]
+    assert walls == sorted(walls) and 0 < walls[-1] <= with_curve["wall_s"]
+    test = load_dataset(tiny_blender, "test")
+    per_view = evaluate(fa, test, cfg(True).train)["psnr_per_view"]
+    pooled = -10 * math.log10(sum(10 ** (-p / 10) for p in per_view) / len(per_view))
+    assert points[-1]["psnr"] == pytest.approx(pooled, abs=1e-3)
+
+    train(tiny_blender, tmp_path / "c", cfg(True), cpu, progress=False, stop_at=4,
+          evaluate_test=False)
+    first = torch.load(tmp_path / "c" / "checkpoint.pt", weights_only=False)["wall_s"]
+    resumed = train(tiny_blender, tmp_path / "c", cfg(True), cpu, progress=False, resume=True,
+                    evaluate_test=False)
+    again = [json.loads(ln) for ln in (tmp_path / "c" / "train_curve.jsonl").open()]
+    assert [p["step"] for p in again] == [2, 4, 6]
+    assert resumed["wall_s"] == pytest.approx(first + resumed["seconds"])
+
+
 def test_occupancy_steps_draw_until_the_batch_crosses_the_grid(tiny_blender):
     """The "occupancy" sampler: pixels are drawn until batch_rays of them cross an occupied
     cell; the rest cost no samples but enter the loss."""

@@ -32,6 +32,7 @@ the image is cropped at the bottom/right to a multiple of f, which keeps the pri
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import threading
@@ -477,12 +478,14 @@ def _process(rgb: torch.Tensor, alpha: torch.Tensor | None, f: int,
 
 def load_dataset(root: str | Path, split: str = "train", downscale: int = 1,
                  background: tuple[float, float, float] | None = (1.0, 1.0, 1.0),
-                 skip_missing: bool | None = None, workers: int | None = None) -> Dataset:
+                 skip_missing: bool | None = None, workers: int | None = None,
+                 views: list[int] | None = None) -> Dataset:
     """Load one split: cameras in OpenCV axes, images float32 in [0, 1].
 
     downscale: integer factor f >= 1; images are area-averaged (cropped to a multiple of f) and
     intrinsics divided by f. background: RGB that RGBA images are composited onto; None keeps
-    straight colour. skip_missing: see `read_frames`. workers: decoding threads.
+    straight colour. skip_missing: see `read_frames`. workers: decoding threads. views: only
+    these frames of the split (indices in file order; default all).
     """
     if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
         raise InputError(f"downscale {downscale!r}: must be an integer >= 1")
@@ -491,6 +494,9 @@ def load_dataset(root: str | Path, split: str = "train", downscale: int = 1,
         if len(background) != 3:
             raise InputError(f"background {background}: expected three values (R, G, B)")
     fr = read_frames(root, split, skip_missing)
+    if views is not None:
+        fr = dataclasses.replace(fr, paths=[fr.paths[k] for k in views], cameras=fr.cameras[views],
+                                 names=[fr.names[k] for k in views])
     cams = fr.cameras.downscaled(downscale)
     n, h, w = len(fr.paths), cams.height, cams.width
     images = torch.empty(n, h, w, 3, dtype=torch.float32)

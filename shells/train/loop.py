@@ -173,20 +173,24 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
              progress: bool = True,
              before_step: Callable[[int], None] | None = None,
              state: Any = None,
+             after_step: Callable[[int, float], None] | None = None,
              ) -> dict[str, Any]:
-    """Run steps [start, end) of the schedule; returns the summary (step, seconds, rays_per_s,
-    samples_per_s, last, finished). ``cfg`` is what the checkpoints store with the field.
+    """Run steps [start, end) of the schedule; returns the summary (step, seconds, wall_s,
+    rays_per_s, samples_per_s, last, finished). ``cfg`` is what the checkpoints store with the
+    field. ``seconds`` is this sitting's time, ``wall_s`` the stage's over all its sittings
+    (kept in the checkpoints; up to the checkpoint a sitting resumed from).
 
     ``before_step(k)`` runs on every rank before step k's shards (a stage's schedule of its
     own, e.g. rebuilding an occupancy grid); ``state`` (an object with ``state_dict`` /
     ``load_state_dict``, e.g. that grid) is stored in the checkpoints and restored on resume.
     A shard's logs may report ``rays`` and ``samples`` it used (else ``rays_per_step`` /
-    ``shards`` rays are counted)."""
+    ``shards`` rays are counted). ``after_step(k, wall_s)`` runs on every rank after step k's
+    update (k counted from 1)."""
     w = distributed.world(device)
     _check_shards(sched.name, sched.shards, w)
-    start = 0
+    start, wall0 = 0, 0.0
     if resume is not None:
-        start = int(resume["step"])
+        start, wall0 = int(resume["step"]), float(resume.get("wall_s", 0.0))
         if start >= sched.iters:
             raise InputError(f"{checkpoint}: already trained {start} steps; pass a larger "
                              f"--iters to continue")
@@ -244,15 +248,19 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
             bar.update(1)
             bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
                             rays_s=f"{rays_s:.0f}")
+            if after_step is not None:
+                after_step(done, wall0 + time.perf_counter() - t0)
             if w.main and (done % sched.log_every == 0 or done == end):
-                rec = {"step": done, **last, "rays_per_s": rays_s, "elapsed_s": elapsed}
+                rec = {"step": done, **last, "rays_per_s": rays_s, "elapsed_s": elapsed,
+                       "wall_s": wall0 + elapsed}
                 if samples:
                     rec["samples_per_s"] = samples / elapsed
                 append_log(log, rec)
             if done % sched.checkpoint_every == 0 or done == end:
                 if w.main:
                     save_checkpoint(checkpoint, field, opt, done, cfg,
-                                    None if state is None else state.state_dict())
+                                    None if state is None else state.state_dict(),
+                                    wall0 + time.perf_counter() - t0)
                 saved = done
     except KeyboardInterrupt:
         raise Interrupted(f"{sched.name} interrupted at step {k + 1}; {_intact(checkpoint, saved)}",
@@ -268,8 +276,8 @@ def optimise(field: ShellField, opt: torch.optim.Optimizer, cfg: Config, sched: 
         bar.close()
     field.eval()
     seconds = time.perf_counter() - t0
-    summary = {"step": end, "seconds": seconds, "rays_per_s": rays_s, "last": last,
-               "finished": end == sched.iters}
+    summary = {"step": end, "seconds": seconds, "wall_s": wall0 + seconds, "rays_per_s": rays_s,
+               "last": last, "finished": end == sched.iters}
     if samples:
         summary["samples_per_s"] = samples / max(seconds, 1e-9)
     return summary

@@ -44,7 +44,8 @@ from shells.fields.neus import may_have_density
 from shells.metrics import psnr
 from shells.progress import tqdm
 from shells.render.volume import SpanGrid, ray_aabb, render_volume_image, render_volume_rays
-from shells.run import RunDir, field_from_checkpoint, read_checkpoint, read_run, write_run
+from shells.run import (RunDir, append_log, field_from_checkpoint, read_checkpoint, read_run,
+                        truncate_log, write_run)
 from shells.train.health import Stage1Health, probe_points, psnr_floor, solid_share
 from shells.train.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
 
@@ -325,10 +326,46 @@ def stage1_renderer(run_dir: str | Path, data_dir: str | Path
         ro, rd = test.cameras.pixel_rays(i, 1)
         with torch.no_grad():
             img = render_volume_image(field, ro, rd, cfg.train.n_samples,
-                                      cfg.train.n_importance, bg, grid=grid)
+                                      cfg.train.n_importance, bg, grid=grid,
+                                      slope=cfg.train.slope)
         return img["color"].reshape(H, W, 3).numpy(), img["opacity"].numpy()
 
     return test, render
+
+
+class RunningCurve:
+    """Stage 1's running test curve: every ``train.curve_every`` steps, the full-ray PSNR of a
+    fixed random subset of pixels (``curve_pixels`` per view) of ``curve_views`` test views
+    spread over the split, appended with the step and the wall time to RUN/train_curve.jsonl.
+    Uniformly drawn pixels give an unbiased estimate of the views' mean squared error at a
+    small share of a full render's cost; the training's random streams are not touched."""
+
+    def __init__(self, test: Dataset, tc: TrainConfig, path: Path, device: torch.device) -> None:
+        n_views, k = len(test), min(tc.curve_views, len(test))
+        self.views = sorted({round(i * (n_views - 1) / max(1, k - 1)) for i in range(k)})
+        gen = torch.Generator().manual_seed(tc.seed)
+        H, W = test.images.shape[1:3]
+        rays, targets = [], []
+        for i in self.views:
+            pick = torch.randperm(H * W, generator=gen)[:tc.curve_pixels]
+            o, d = test.cameras.pixel_rays(i, 1)
+            rays.append((o[pick], d[pick]))
+            targets.append(test.images[i].reshape(-1, 3)[pick])
+        self.origins = torch.cat([o for o, _ in rays]).to(device)
+        self.dirs = torch.cat([d for _, d in rays]).to(device)
+        self.target = torch.cat(targets).numpy()
+        self.background = torch.tensor(test.background, device=device)
+        self.tc, self.path = tc, path
+
+    def point(self, field: ShellField, grid: SpanGrid | None, step: int, wall_s: float) -> None:
+        with torch.no_grad():
+            img = render_volume_image(field, self.origins, self.dirs, self.tc.n_samples,
+                                      self.tc.n_importance, self.background, grid=grid,
+                                      slope=self.tc.slope)
+        append_log(self.path, {"step": step, "wall_s": wall_s,
+                               "psnr": psnr(img["color"].cpu().numpy()[:, None],
+                                            self.target[:, None]),  # [P, 1, 3]
+                               "views": self.views, "pixels": len(self.target)})
 
 
 def evaluate(field: ShellField, data: Dataset, tc: TrainConfig, max_views: int = 0,
@@ -398,6 +435,20 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
         at[0] = k
         before_step(field, grid, tc, k)
 
+    curve = None
+    if tc.curve_every > 0 and w.main:
+        truncate_log(run.curve, int(ckpt["step"]) if ckpt is not None else 0)
+        try:
+            curve = RunningCurve(load_dataset(data_dir, "test", downscale=downscale,
+                                              background=cfg.data.background),
+                                 tc, run.curve, device)
+        except InputError:
+            pass  # a data set without a test split: no curve
+
+    def after(done: int, wall_s: float) -> None:
+        if curve is not None and (done % tc.curve_every == 0 or done == tc.iters):
+            curve.point(field, grid, done, wall_s)
+
     def shard(gen: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         loss, rec = stage1_step(field, data, pixels, tc, background, gen, grid, at[0], alpha)
         done = at[0] + 1
@@ -414,7 +465,8 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
     with drjit_on_calling_thread():  # torch work between the lookups (its docstring)
         summary = optimise(field, opt, cfg, Schedule.of("stage 1", tc), shard,
                            run.checkpoint("stage1"), run.log("stage1"), device, resume=ckpt,
-                           stop_at=stop_at, progress=progress, before_step=before, state=grid)
+                           stop_at=stop_at, progress=progress, before_step=before, state=grid,
+                           after_step=after)
         summary["health"] = health.summary()
         summary["background"] = {"colour": list(cfg.data.background),
                                   "random": alpha is not None}
