@@ -4,9 +4,11 @@
         [--view 0 [--view 3 ...]] [--downscale 1] [--scale 3]
     python docs/figures.py animation OUT.png DIR[:LABEL] [DIR[:LABEL] ...]
         [--frames 0 8 16 24] [--size 160]
+    python docs/figures.py curve OUT.png RUN[:LABEL] [RUN[:LABEL] ...] [--title TEXT]
 
 demo: ground truth | full-ray render | band render | band samples per pixel, one row per view.
 animation: chosen frames of each animation in a row, with its ms/frame.
+curve: stage 1's running test curve (RUN/train_curve.jsonl) against wall time, one line a run.
 """
 
 from __future__ import annotations
@@ -78,11 +80,41 @@ def animation(args: argparse.Namespace) -> int:
     return 0
 
 
+def curve(args: argparse.Namespace) -> int:
+    """Stage 1's running test curves: PSNR of each RUN's fixed held-out pixels
+    (RUN/train_curve.jsonl, shells-train with train.curve_every > 0) against the wall time of
+    its stage 1 in hours, summed over its sittings."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    for spec in args.runs:
+        run, _, label = spec.partition(":")
+        lines = (Path(run) / "train_curve.jsonl").read_text().splitlines()
+        points = [json.loads(ln) for ln in lines if ln.strip()]
+        if not points:
+            raise SystemExit(f"{run}/train_curve.jsonl: no points yet")
+        ax.plot([p["wall_s"] / 3600 for p in points], [p["psnr"] for p in points], marker=".",
+                label=f"{label or Path(run).name} (step {points[-1]['step']}: "
+                      f"{points[-1]['psnr']:.2f} dB)")
+    ax.set_xlabel("stage-1 wall time (h)")
+    ax.set_ylabel("test PSNR (dB), held-out pixels")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    if args.title:
+        ax.set_title(args.title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(args.out, dpi=120)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python docs/figures.py",
                                 description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
-    for fn in (demo, animation):
+    for fn in (demo, animation, curve):
         doc = " ".join(fn.__doc__.split())
         sub.add_parser(fn.__name__, help=doc.split(". ")[0], description=doc).set_defaults(fn=fn)
     sp = sub.choices["demo"]
@@ -99,6 +131,10 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("dirs", nargs="+", metavar="DIR[:LABEL]")
     sp.add_argument("--frames", type=int, nargs="+", default=[0, 8, 16, 24])
     sp.add_argument("--size", type=int, default=160)
+    sp = sub.choices["curve"]
+    sp.add_argument("out")
+    sp.add_argument("runs", nargs="+", metavar="RUN[:LABEL]")
+    sp.add_argument("--title", default=None)
     args = p.parse_args(argv)
     return args.fn(args)
 

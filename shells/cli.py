@@ -149,7 +149,6 @@ def _terminate(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-
 # --------------------------------------------------------------------------------------------
 # Arguments several commands share
 # --------------------------------------------------------------------------------------------
@@ -614,7 +613,8 @@ COMMANDS = {
     "shells-scene": Command(_scene_args, _scene),
     "shells-process-data": Command(_process_data_args, _process_data),
     "shells-train": Command(_train_args, _train, ("shells.train.stage1",)),
-    "shells-extract": Command(_extract_args, _extract, ("shells.pipeline", "shells.levelset.extract",
+    "shells-extract": Command(_extract_args, _extract, ("shells.pipeline",
+                                                         "shells.levelset.extract",
                                                          "shells.levelset.figure")),
     "shells-finetune": Command(_finetune_args, _finetune, ("shells.train.stage2",
                                                             "shells.levelset.mesh")),

@@ -6,6 +6,7 @@ Layout::
     RUN/config.json           the full Config used (shells.config)
     RUN/checkpoint.pt         stage-1 checkpoint (atomic): step, field, optimiser, config, aabb
     RUN/train_log.jsonl       stage 1: one JSON record per log step
+    RUN/train_curve.jsonl     stage 1: the running test curve (`RunDir.curve`)
     RUN/train_summary.json    stage 1 finished: steps, seconds, last record, test PSNR
     RUN/shells/               outer.ply, inner.ply, stats.json, slice.png (shells-extract)
     RUN/shells/lod/           outer.ply, inner.ply, stats.json: coarse shells that contain the
