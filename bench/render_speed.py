@@ -7,6 +7,8 @@ also image-space refinement against the band render, and the fine against the LO
                                      [--view-ids 0 4 8 12] [--distances 0.6 0.8 1.0 1.4 2.0]
                                      [--repeats 2] [--config FILE] [--json OUT]
     python -m bench.render_speed RUN --cast-only [--width W --height H] [--json OUT]
+    python -m bench.render_speed RUN --baked [--sizes 400 800] [--frames 60]
+                                     [--gl llvmpipe swiftshader] [--json OUT]
 
 RUN is a run directory as `shells-train` + `shells-extract` leave it (checkpoint.pt, run.json,
 shells/outer.ply, shells/inner.ply); ``--config`` is a JSON file whose `render` section
@@ -40,6 +42,14 @@ the scene centre, at the largest size, and reports the time ratio at each. Print
 ``--cast-only``: the depth-peeled interval cast (`ShellScene.intervals`, the band renderer's
 and stage 2's) of every pixel of the test views through the fine shells and through their LOD
 (shells-lod), median of 5 warm repeats; prints JSON.
+
+``--baked``: the baked asset (shells-bake) against the band render of the same run. Python:
+band and baked renders of the test views at the data set's size (PSNR, SSIM, layers or samples
+per pixel, median warm ms/frame) and at each square ``--sizes`` (speed only). Browser: the
+asset exported (shells-export --web) and served on 127.0.0.1, headless Chromium with each
+software GL of ``--gl`` (llvmpipe: Mesa through ANGLE's EGL backend; swiftshader), a
+synchronous ``--frames``-frame orbit at each size, each frame finished by a one-pixel
+gl.readPixels; median ms/frame. Prints JSON.
 """
 
 from __future__ import annotations
@@ -400,6 +410,55 @@ def cast_bench(args: argparse.Namespace, overrides: dict[str, Any]) -> dict[str,
     return out
 
 
+def baked_bench(args: argparse.Namespace) -> dict[str, Any]:
+    """``--baked`` (module docstring)."""
+    import tempfile
+    import threading
+
+    from shells.baked import export_web, static_server
+    from shells.browser import Browser
+    from shells.pipeline import render_run
+
+    run = RunDir(args.run)
+    check_run(run, "baked")
+    out: dict[str, Any] = {"run": str(run.root), "python": {}, "browser": {}}
+    with tempfile.TemporaryDirectory(prefix="bench-baked-") as tmp:
+        for mode in ("band", "baked"):
+            for size in [None, *args.sizes]:
+                m = render_run(run, mode=mode, width=size, height=size, out=Path(tmp) / "r",
+                               progress=args.progress)
+                key = f"{mode} {m['width']}x{m['height']}"
+                out["python"][key] = {k: m.get(k) for k in (
+                    "psnr", "ssim", "samples_per_pixel", "ms_per_frame", "views")}
+        for size in [None, *args.sizes]:
+            band = next(v for k, v in out["python"].items() if k.startswith("band ")
+                        and (size is None or k.endswith(f" {size}x{size}")))
+            baked = next(v for k, v in out["python"].items() if k.startswith("baked ")
+                         and (size is None or k.endswith(f" {size}x{size}")))
+            out["python"][f"speed-up {size or 'native'}"] = band["ms_per_frame"] / max(
+                baked["ms_per_frame"], 1e-9)
+        web = Path(tmp) / "web"
+        export_web(run.root, web)
+        out["asset_bytes"] = (web / "layers.glb").stat().st_size
+        srv = static_server(web, "127.0.0.1", 0)
+        threading.Thread(target=srv.serve_forever, daemon=True).start()
+        url = f"http://127.0.0.1:{srv.server_address[1]}/?paused=1"
+        try:
+            for gl in args.gl:
+                with Browser(gl=gl, offline=True, timeout=600) as b:
+                    b.open(url, ready="window.shells && window.shells.ready", timeout=600)
+                    for size in args.sizes:
+                        r = b.evaluate(f"window.shells.benchmark({args.frames}, {size}, {size})",
+                                       timeout=1800)
+                        out["browser"][f"{gl} {size}x{size}"] = {
+                            "median_ms": r["median_ms"], "fps": 1000.0 / r["median_ms"],
+                            "frames": r["frames"], "renderer": r["renderer"]}
+                    out["browser"]["triangles"] = b.evaluate("window.shells.triangles")
+        finally:
+            srv.shutdown()
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run", type=Path)
@@ -408,6 +467,8 @@ def main(argv: list[str] | None = None) -> int:
                       help="image-space refinement against the band render")
     mode.add_argument("--cast-only", action="store_true",
                       help="the interval cast alone, fine against LOD shells")
+    mode.add_argument("--baked", action="store_true",
+                      help="the baked asset: Python against band, and in headless Chromium")
     p.add_argument("--width", type=int, default=None, help="default: the data set's")
     p.add_argument("--height", type=int, default=None, help="default: the data set's")
     p.add_argument("--views", type=int, default=None, help="first N views (default: all)")
@@ -424,11 +485,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--progress", action="store_true")
     g = p.add_argument_group("--refine")
     g.add_argument("--levels", type=int, default=3, help="render.refine_levels of the refined")
-    g.add_argument("--sizes", type=int, nargs="+", default=[400, 800], help="square sizes")
+    g.add_argument("--sizes", type=int, nargs="+", default=[400, 800],
+                   help="square sizes (--refine, --baked)")
     g.add_argument("--view-ids", type=int, nargs="+", default=[0, 4, 8, 12])
     g.add_argument("--distances", type=float, nargs="*", default=[0.6, 0.8, 1.0, 1.4, 2.0])
     g.add_argument("--repeats", type=int, default=2)
-    p.add_argument("--json", default=None, help="--refine, --cast-only: also write JSON here")
+    g = p.add_argument_group("--baked")
+    g.add_argument("--frames", type=int, default=60, help="frames of the browser's orbit")
+    g.add_argument("--gl", nargs="+", default=["llvmpipe", "swiftshader"],
+                   choices=["llvmpipe", "swiftshader"], help="Chromium's software GL")
+    p.add_argument("--json", default=None,
+                   help="--refine, --cast-only, --baked: also write JSON here")
     args = p.parse_args(argv)
     overrides = read_config_file(args.config).get("render", {}) if args.config else {}
     overrides.update({k: v for k, v in (("full_samples", args.full_samples),
@@ -440,6 +507,8 @@ def main(argv: list[str] | None = None) -> int:
             emit_json(refine_bench(args, overrides), args.json)
         elif args.cast_only:
             emit_json(cast_bench(args, overrides), args.json)
+        elif args.baked:
+            emit_json(baked_bench(args), args.json)
         else:
             report_bench(run_bench(args.run, args.split, args.width, args.height, args.views,
                                    args.stage, args.out, overrides, args.progress),

@@ -359,10 +359,12 @@ def _render_args(p: argparse.ArgumentParser) -> None:
     torchrun the frames are shared by the processes (frame i on rank i mod N)."""
     p.add_argument("run", help="run directory")
     p.add_argument("--split", default="test", help="data split to render (default test)")
-    p.add_argument("--mode", choices=["band", "full", "occupancy"], default="band",
+    p.add_argument("--mode", choices=["band", "full", "occupancy", "baked"], default="band",
                    help="band: samples between the shells (default); full: dense samples along "
                         "the whole ray (baseline); occupancy: occupancy-grid ray marching with "
-                        "empty-space skipping and early termination (Instant-NGP-style baseline)")
+                        "empty-space skipping and early termination (Instant-NGP-style "
+                        "baseline); baked: the layer meshes of shells-bake, as the browser "
+                        "viewer draws them (no field evaluation)")
     p.add_argument("--width", type=int, default=None, help="output width (default: data set's)")
     p.add_argument("--height", type=int, default=None, help="output height")
     p.add_argument("--spp", type=int, default=None, metavar="N",
@@ -461,10 +463,14 @@ def _demo(args: argparse.Namespace) -> int:
 def _view_args(p: argparse.ArgumentParser) -> None:
     """Web viewer (viser): the shells, the training cameras and the band render of the
     browser's camera as the background, re-rendered as it moves. Runs headless and prints the
-    URL to open."""
+    URL to open. With --baked: the baked asset (shells-bake) drawn by the browser itself
+    (three.js), served as a static folder; nothing is rendered on the server."""
     p.add_argument("run", help="run directory with a checkpoint and shells")
     p.add_argument("--host", default="0.0.0.0", help="address to listen on (default all)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--baked", action="store_true",
+                   help="export RUN/baked (shells-export --web RUN/baked/web) and serve it: the "
+                        "browser draws the layers")
     _stage_arg(p)
     p.add_argument("--resolution", type=int, default=320,
                    help="longer side of the resting render in pixels (default 320)")
@@ -473,6 +479,11 @@ def _view_args(p: argparse.ArgumentParser) -> None:
 
 
 def _view(args: argparse.Namespace) -> int:
+    if args.baked:
+        from shells.baked import view_baked
+
+        view_baked(args.run, host=args.host, port=args.port)
+        return 0
     from shells.viewer import view
 
     view(args.run, args.host, args.port, args.stage, args.resolution, args.dump)
@@ -596,6 +607,63 @@ def _lod(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+# shells-bake, shells-export
+# --------------------------------------------------------------------------------------------
+
+def _bake_args(p: argparse.ArgumentParser) -> None:
+    """Bake the band for real-time viewing: a few nested, semi-transparent layer meshes cut
+    from the stage-2 field's level sets inside the shells, their per-vertex colour, opacity and
+    view-dependent (degree-1 SH) colour fitted to the training photos through the renderer the
+    viewers use. Writes RUN/baked/layers.glb (glTF 2.0) and asset.json."""
+    p.add_argument("run", help="run directory after shells-finetune")
+    p.add_argument("--size-mb", type=float, default=None, metavar="MB",
+                   help="size budget of layers.glb (default 60); the layer grid is made coarser "
+                        "until the layers fit")
+    p.add_argument("--levels", type=float, nargs="+", default=None, metavar="U",
+                   help="level sets u = f / s of the layers, 0 (the surface) included "
+                        "(default -2 0 2)")
+    p.add_argument("--resolution", type=int, default=None,
+                   help="grid of the layer meshes (default: cells about one training pixel "
+                        "wide at the scene centre, at most the shells' resolution)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="fitting steps (default 600)")
+
+
+def _bake(args: argparse.Namespace) -> int:
+    from shells.baked import bake_run
+
+    with _locked_run(args.run, "shells-bake"):
+        rec = bake_run(args.run, levels=args.levels, resolution=args.resolution,
+                       size_mb=args.size_mb, steps=args.steps, progress=True)
+    fit = rec["fit"]
+    print(f"baked {len(rec['layers'])} layers, {fit['triangles']} triangles, "
+          f"{rec['size_bytes'] / 1e6:.1f} MB, training PSNR {fit['train_psnr_last']:.2f} dB, "
+          f"{fit['seconds']:.0f} s -> {args.run}/baked/layers.glb")
+    return 0
+
+
+def _export_args(p: argparse.ArgumentParser) -> None:
+    """Export a baked asset (shells-bake) as a self-contained folder that works offline: the
+    layers as glTF 2.0 (layers.glb; Blender or any glTF viewer opens it), asset.json,
+    cameras.json, and a static three.js viewer (orbit controls, fps, layers per pixel). Serve
+    it with `python -m http.server -d OUT`."""
+    p.add_argument("run", help="run directory after shells-bake")
+    p.add_argument("--web", required=True, metavar="OUT", help="the folder to write")
+    p.add_argument("--three", default=None, metavar="DIR",
+                   help="the npm package three (default: $SHELLS_THREE, or web/node_modules/"
+                        "three of the source tree after `npm ci --prefix web`)")
+
+
+def _export(args: argparse.Namespace) -> int:
+    from shells.baked import export_web
+
+    rec = export_web(args.run, args.web, args.three)
+    print(f"{len(rec['files'])} files -> {rec['out']}; serve it: python -m http.server -d "
+          f"{rec['out']}")
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
 # The commands: one row each (console scripts in pyproject.toml)
 # --------------------------------------------------------------------------------------------
 
@@ -628,6 +696,9 @@ COMMANDS = {
     "shells-animate": Command(_animate_args, _animate, ("shells.pipeline",
                                                          "shells.render.deformed")),
     "shells-lod": Command(_lod_args, _lod, ("shells.pipeline", "shells.levelset.lod")),
+    "shells-bake": Command(_bake_args, _bake, ("shells.baked", "shells.train.bake",
+                                               "shells.render.baked")),
+    "shells-export": Command(_export_args, _export, ("shells.baked",)),
 }
 
 
@@ -660,3 +731,5 @@ view_main = _main_of("shells-view")
 cage_main = _main_of("shells-cage")
 animate_main = _main_of("shells-animate")
 lod_main = _main_of("shells-lod")
+bake_main = _main_of("shells-bake")
+export_main = _main_of("shells-export")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 import socket
 import tempfile
@@ -23,7 +24,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from shells.errors import WRITE_ERRNOS, InputError
+from shells.errors import WRITE_ERRNOS, InputError, Interrupted
 
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}  # the ones a command turns into an orderly end
 
@@ -122,6 +123,21 @@ def commit_files(stage: Path, out: Path, last: str | None = None) -> None:
             signal.raise_signal(came)
         raise
     _final["held"] = held  # held back until final_commit ends
+
+
+@contextlib.contextmanager
+def staged_dir(out: Path, command: str) -> Iterator[Path]:
+    """A hidden staging folder beside ``out`` for a command's files (the caller moves them in
+    with `commit_files`); removed at the end, and a Ctrl-C leaves ``out`` as it was."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    try:
+        yield tmp
+    except KeyboardInterrupt:
+        raise Interrupted(f"{command} interrupted; {out} is as it was before; run it again",
+                          status=130) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:

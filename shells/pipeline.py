@@ -13,14 +13,13 @@ partial output.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import os
 import shutil
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -28,7 +27,7 @@ import torch
 from shells.config import override_config
 from shells.train.health import CAUSES, SOLID_SHARE, degenerate_grid
 from shells.errors import WRITE_ERRNOS, InputError, Interrupted
-from shells.files import commit_files, write_image, write_json
+from shells.files import commit_files, staged_dir, write_image, write_json
 from shells.metrics import PROTOCOL
 from shells.run import (RunDir, field_from_checkpoint, load_field, load_shells, read_checkpoint,
                         read_run, resolve_stage, shells_source)
@@ -137,21 +136,6 @@ def _unbounded_to_world(shells: Any, field: Any) -> None:
     shells.stats["timings_s"]["to_world"] = time.perf_counter() - t0
 
 
-@contextlib.contextmanager
-def _staged(out: Path, command: str) -> Iterator[Path]:
-    """A hidden staging folder beside ``out`` for a command's files (the caller moves them in
-    with `commit_files`); removed at the end, and a Ctrl-C leaves ``out`` as it was."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
-    try:
-        yield tmp
-    except KeyboardInterrupt:
-        raise Interrupted(f"{command} interrupted; {out} is as it was before; run it again",
-                          status=130) from None
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
 def _named(exc: OSError, out: Path) -> OSError:
     """A refused write without a file name (a full disk) named by the output it was for."""
     if exc.filename is None and exc.errno in WRITE_ERRNOS:
@@ -170,6 +154,9 @@ def check_run(run: RunDir, mode: str) -> dict[str, Any]:
         raise InputError(f"{run.checkpoint()}: no checkpoint; run shells-train first")
     if mode == "band" and not run.outer.is_file():
         raise InputError(f"{run.outer}: no outer shell; run shells-extract first")
+    if mode == "baked" and not (run.baked / "asset.json").is_file():
+        raise InputError(f"{run.baked / 'asset.json'}: no baked asset; run shells-bake "
+                         f"{run.root} first")
     return meta
 
 
@@ -227,6 +214,10 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     rc, bg = cfg.render, tuple(cfg.data.background)
     variant = mitsuba_variant(rc.variant)
     scene = load_shells(run, variant, shells) if mode == "band" else None
+    if mode == "baked":
+        from shells.render.baked import LayerScene, read_asset
+
+        scene = LayerScene.of(read_asset(run.baked), variant)
     data = load_dataset(meta["data"], "train" if path else split,
                         downscale=int(meta["downscale"]), background=bg)
     if path:
@@ -241,7 +232,8 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     out = render_out(run, mode, path, out)
     extra = {
         "split": None if path else split, "path": path, "variant": variant,
-        "stage": loaded, "out": str(out), "shells": shells if mode == "band" else None,
+        "stage": "baked" if mode == "baked" else loaded, "out": str(out),
+        "shells": shells if mode == "band" else None,
         "device": "cuda" if variant.startswith("cuda") else "cpu",
         "background": list(bg), "data": str(meta["data"]),
         "downscale": int(meta["downscale"]),
@@ -437,7 +429,7 @@ def cage_run(run_dir: str | Path, margin: float | None = None, resolution: int =
     cage, emb = build_cage(outer, inner, margin, resolution, edge_length, epsilon, threads)
     extra = {"run_id": run_id(run), "shells": shells, "shells_sha1": shells_digest(run, shells)}
     out = run.cage_dir(shells)
-    with _staged(out, "shells-cage") as tmp:
+    with staged_dir(out, "shells-cage") as tmp:
         write_cage(tmp, cage, emb, extra)
         commit_files(tmp, out, last="cage.npz")  # the file the other commands read
     return {**cage.stats, **extra, "out": str(out)}
@@ -527,7 +519,7 @@ def animate_run(run_dir: str | Path, motion: str, frames: int = 48, fps: float =
                       variant)
     out = animate_out(run, motion, out)
     total, render, spp_sum = [], [], 0.0
-    with _staged(out, "shells-animate") as tmp:
+    with staged_dir(out, "shells-animate") as tmp:
         for k in tqdm(range(len(P)), desc=f"animate {Path(motion).stem}", unit="frame",
                       disable=not progress):
             t0 = time.perf_counter()
@@ -589,7 +581,7 @@ def lod_run(run_dir: str | Path, ratio: float = 10.0, parity_rays: int = 100_000
     stats["seconds"] = time.perf_counter() - t0
     stats["shells_sha1"] = shells_digest(run)
     stats["source"] = fine.get("source")
-    with _staged(run.lod, "shells-lod") as tmp:
+    with staged_dir(run.lod, "shells-lod") as tmp:
         write_ply(tmp / "outer.ply", trimesh.Trimesh(*co, process=False))
         write_ply(tmp / "inner.ply", trimesh.Trimesh(*ci, process=False))
         stats["file_bytes"] = {

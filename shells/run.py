@@ -116,6 +116,11 @@ class RunDir:
     def cage(self) -> Path:
         return self.root / "cage"
 
+    @property
+    def baked(self) -> Path:
+        """RUN/baked: the baked layer meshes (shells-bake)."""
+        return self.root / "baked"
+
     def cage_dir(self, which: str = "fine") -> Path:
         """RUN/cage: the cage of the fine shells; RUN/cage/lod: that of the LOD shells."""
         self.shell_files(which)  # checks the name

@@ -11,6 +11,9 @@ Per batch of rays (§3.4, §4.2):
     then: one batched field evaluation at all samples -> NeuS alpha (shells.fields.neus, the
           formula shared with training) with cos = d . n and the sample's section length ->
           front-to-back compositing per ray over the background (`shells.render.shading`).
+    baked: the baked layer meshes (`shells.render.baked`): each layer's nearest hit, its
+          interpolated colour and opacity blended in the layers' fixed order; ``scene`` is then
+          a `shells.render.baked.LayerScene` and the field is not used.
     occupancy: occupancy-grid ray marching with empty-space skipping and early termination
           (the Instant-NGP / nerfacc baseline, shells.render.occupancy): same NeuS alpha and
           compositing, in rounds of cfg.occ_chunk samples per ray.
@@ -36,7 +39,7 @@ from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import far_intervals, field_warp, place_packed, shell_intervals
 from shells.render.shading import WHITE, composite_packed, end_colour, shade_samples
 
-MODES = ("band", "full", "occupancy")
+MODES = ("band", "full", "occupancy", "baked")
 BYTES_PER_RAY = 512  # Dr.Jit and torch memory of a ray in a batch (origin, direction, shell
 # hits, colour, counts), besides its samples; an upper estimate
 BYTES_PER_SAMPLE = 96  # memory of one field sample (position, direction, t, section, ray
@@ -48,7 +51,7 @@ def rays_per_batch(cfg: RenderConfig, mode: str) -> int:
     fit both cfg.chunk_samples and the memory budget cfg.memory_mb."""
     K = cfg.spp
     per_ray = {"full": cfg.full_samples,  # occupancy: samples held per live ray and round
-               "occupancy": cfg.occ_chunk}.get(mode, ((cfg.dp_max + 1) // 2) * cfg.n_max)
+               "occupancy": cfg.occ_chunk, "baked": 4}.get(mode, ((cfg.dp_max + 1) // 2) * cfg.n_max)
     by_samples = cfg.chunk_samples // max(per_ray * K, 1)
     by_memory = (cfg.memory_mb << 20) // (K * (BYTES_PER_RAY + per_ray * BYTES_PER_SAMPLE))
     return max(1, min(by_samples, by_memory)) * K
@@ -80,6 +83,12 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
             raise InputError("full mode needs the scene box: pass aabb [2, 3]")
         return render_intervals(field, o, d, box_intervals(o, d, aabb), cfg, background,
                                 fixed=cfg.full_samples)[:2]
+    if mode == "baked":
+        from shells.render.baked import render_baked
+
+        colour, count = render_baked(scene, origins, dirs, background)
+        return (dr.unravel(mi.Color3f, mi.Float(colour.reshape(-1))),
+                mi.UInt32(count.to(torch.int32).numpy().astype("uint32")))
     if mode == "occupancy":
         colour, _, count = render_occupancy(field, o, d, cfg, aabb, background)
         return colour, count

@@ -1,0 +1,255 @@
+"""Baking: nested layer meshes inside the band, their appearance fitted to the training photos.
+
+1. Layers (`layer_meshes`): level sets u = f / s = c of the stage-2 field, c in ``levels``
+   (e.g. -2, 0, 2): the kernel-normalised SDF, so the layers spread where the kernel is wide
+   (fuzz) and close up where it is sharp. The surface layer (c = 0) is kept whole; a side
+   layer only inside the band (inside M+, outside M-) and only where its distance to the
+   surface, |c| s, is at least one grid step (elsewhere it would repeat the surface layer).
+2. Start values distilled from the field: base colour = the radiance seen along -normal,
+   opacity = the NeuS opacity of the layer's slab of u (the innermost slab is solid, as M- is).
+3. Fit (`fit_layers`): every training ray is cast once against each layer (Mitsuba) and its
+   hits cached; the per-vertex attributes are then fitted with Adam to the photos through
+   `shells.render.baked.shade`, the compositing rule the viewers apply. Triangles left fully
+   transparent are dropped, the rays cast again and the fit continued on what is kept.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from shells.errors import InputError
+from shells.progress import tqdm
+from shells.render.baked import BakedAsset, LayerAttributes, LayerHits, LayerScene, quantise, shade
+
+BYTES_PER_VERTEX = 12 + 4 + 12  # position, RGBA, three SH axes (the GLB's layout)
+BYTES_PER_TRIANGLE = 12
+
+
+@dataclass
+class BakeConfig:
+    levels: tuple[float, ...] = (-2.0, 0.0, 2.0)  # u = f / s of the layers (0: the surface)
+    resolution: int | None = None  # grid of the layer meshes; None = the shells' (shell.resolution)
+    size_mb: float = 60.0  # budget of the GLB; the grid is made coarser until the layers fit
+    steps: int = 600  # Adam steps in all (three quarters before the pruning, the rest after)
+    rays: int = 1 << 17  # training rays per step
+    lr: float = 0.05  # start learning rate (on logits and SH), decayed 10x over the schedule
+    prune_alpha: float = 1.5 / 255  # a triangle whose three opacities are below this goes
+    teacher_views: int | None = None  # band renders of the field between the training cameras
+    # added to the photos (None: as many as training views; 0: none): they hold the vertices
+    # that the photos alone leave free
+    seed: int = 0
+
+
+def layer_meshes(field: Any, aabb: np.ndarray, resolution: int, levels: tuple[float, ...],
+                 outer: tuple[np.ndarray, np.ndarray], inner: tuple[np.ndarray, np.ndarray] | None,
+                 band: float, progress: bool = False,
+                 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per level (sorted, innermost first): V [n, 3], F [m, 3], s at the vertices [n]."""
+    from scipy.ndimage import map_coordinates
+
+    from shells.levelset.containment import inside
+    from shells.levelset.grid import sample_grid_banded
+    from shells.levelset.mesh import clean_mesh, marching_cubes
+
+    def fn(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        g = field.geometry_field(x)
+        return g["sdf"], g["s"]
+
+    f, s, spacing, _ = sample_grid_banded(fn, aabb, resolution, band, progress=progress)
+    h = float(np.max(spacing))
+    lo = np.asarray(aabb, np.float64)[0]
+    out = []
+    for c in sorted(levels):
+        mesh = clean_mesh(marching_cubes(f - np.float32(c) * s, aabb))
+        V, F = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int64)
+        sv = map_coordinates(s, ((V - lo) / spacing).T, order=1, mode="nearest")
+        if c != 0 and len(F):
+            centre = V[F].mean(1)
+            keep = (np.abs(c) * sv[F].min(1) >= h) & (np.abs(f_at(f, lo, spacing, centre))
+                                                      < band)
+            keep &= inside(*outer, centre)
+            if inner is not None and len(inner[1]):
+                keep &= ~inside(*inner, centre)
+            V, F, sv = _subset(V, F[keep], sv)
+        out.append((V, F, sv))
+    return out
+
+
+def f_at(f: np.ndarray, lo: np.ndarray, spacing: np.ndarray, x: np.ndarray) -> np.ndarray:
+    from scipy.ndimage import map_coordinates
+
+    return map_coordinates(f, ((x - lo) / spacing).T, order=1, mode="nearest")
+
+
+def _subset(V: np.ndarray, F: np.ndarray, *per_vertex: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The vertices used by F, renumbered, with their per-vertex arrays."""
+    used = np.unique(F)
+    remap = np.full(len(V), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return (V[used], remap[F]) + tuple(a[used] for a in per_vertex)
+
+
+def mesh_bytes(meshes: list[tuple[np.ndarray, np.ndarray, Any]]) -> int:
+    return sum(len(V) * BYTES_PER_VERTEX + len(F) * BYTES_PER_TRIANGLE for V, F, _ in meshes)
+
+
+def distilled_start(field: Any, V: np.ndarray, s: np.ndarray, level: float,
+                    levels: tuple[float, ...], h: float, chunk: int = 1 << 16,
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """rgba [n, 4] of a layer from the field (module docstring, item 2), sh zeros [n, 3, 3]."""
+    ls = sorted(levels)
+    k = ls.index(level)
+    lo = -math.inf if k == 0 else 0.5 * (ls[k - 1] + level)
+    hi = math.inf if k == len(ls) - 1 else 0.5 * (level + ls[k + 1])
+    rgba = torch.empty(len(V), 4)
+    with torch.no_grad():
+        for a in range(0, len(V), chunk):
+            x = torch.from_numpy(V[a:a + chunk]).float()
+            geo = field.geometry(x)
+            rgba[a:a + chunk, :3] = field.radiance(-geo["normal"], geo)
+    t_hi = 1.0 if hi == math.inf else 1.0 / (1.0 + math.exp(-hi))
+    t_lo = 0.0 if lo == -math.inf else 1.0 / (1.0 + math.exp(-lo))
+    alpha = torch.full((len(V),), 1.0 - t_lo / t_hi)
+    if level == 0:  # where the side layers are not kept the surface layer is the whole slab
+        sharp = torch.from_numpy(s) * min((abs(c) for c in ls if c != 0), default=1.0) < h
+        alpha[sharp] = 1.0
+    rgba[:, 3] = alpha
+    return rgba, torch.zeros(len(V), 3, 3)
+
+
+@dataclass
+class RayCache:
+    """The training rays that hit a layer: directions [R, 3], target colours [R, 3], hits."""
+
+    d: torch.Tensor
+    target: torch.Tensor
+    hits: list[LayerHits]
+
+
+def cache_rays(scene: LayerScene, views: list[tuple[Any, torch.Tensor]],
+               progress: bool = False) -> RayCache:
+    """Every pixel ray of ``views`` ((cameras, images [N, H, W, 3]) sets) that hits a layer."""
+    ds, targets, hits = [], [], [[] for _ in scene.scenes]
+    pairs = [(cameras, images, i) for cameras, images in views for i in range(len(cameras))]
+    for cameras, images, i in tqdm(pairs, desc="cast training rays", disable=not progress):
+        o, d = cameras.pixel_rays(i)
+        hs = scene.cast(o, d)
+        any_hit = torch.zeros(len(d), dtype=torch.bool)
+        for h in hs:
+            any_hit |= h.prim >= 0
+        idx = torch.nonzero(any_hit).squeeze(1)
+        ds.append(d[idx].float())
+        targets.append(images[i].reshape(-1, 3)[idx])
+        for k, h in enumerate(hs):
+            hits[k].append(LayerHits(h.prim[idx].to(torch.int32), h.uv[idx], h.t[idx]))
+    cat = [LayerHits(torch.cat([x.prim for x in hk]).long(), torch.cat([x.uv for x in hk]),
+                     torch.cat([x.t for x in hk])) for hk in hits]
+    return RayCache(torch.cat(ds), torch.cat(targets), cat)
+
+
+def _logit(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(0.02, 0.98)
+    return torch.log(x / (1 - x))
+
+
+def fit_layers(meshes: list[tuple[np.ndarray, np.ndarray]], start: list[LayerAttributes],
+               views: list[tuple[Any, torch.Tensor]], background: tuple[float, float, float],
+               steps: int, cfg: BakeConfig, variant: str | None = None,
+               progress: bool = False) -> tuple[list[LayerAttributes], dict[str, Any]]:
+    """Fit the attributes of fixed layer meshes to the images of ``views`` ((cameras, images)
+    sets: the photos, the teacher's views); returns them and a record (steps, seconds, final
+    PSNR of the batches, on the rays that hit a layer)."""
+    t0 = time.perf_counter()
+    scene = LayerScene(meshes, variant)
+    cache = cache_rays(scene, views, progress)
+    R = len(cache.d)
+    if R == 0:
+        raise InputError("no training ray hits the layers: nothing to bake (is the field empty?)")
+    params = []
+    for a in start:
+        params += [_logit(a.rgba).requires_grad_(), a.sh.clone().requires_grad_()]
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 0.1 ** (i / max(steps, 1)))
+    gen = torch.Generator().manual_seed(cfg.seed)
+    bg = torch.tensor(background, dtype=torch.float32)
+    psnrs = []
+    bar = tqdm(range(steps), desc="fit layers", disable=not progress)
+    for _ in bar:
+        idx = torch.randint(0, R, (min(cfg.rays, R),), generator=gen)
+        attrs = [LayerAttributes(torch.sigmoid(params[2 * k]), params[2 * k + 1])
+                 for k in range(len(start))]
+        colour, _ = shade(scene.faces, attrs, [h.take(idx) for h in cache.hits], cache.d[idx],
+                          bg)
+        loss = torch.mean((colour - cache.target[idx]) ** 2)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        psnrs.append(-10.0 * math.log10(max(loss.item(), 1e-12)))
+        bar.set_postfix(psnr=f"{psnrs[-1]:.2f}", refresh=False)
+    out = [LayerAttributes(torch.sigmoid(params[2 * k]).detach(), params[2 * k + 1].detach())
+           for k in range(len(start))]
+    return out, {"steps": steps, "rays": R, "seconds": time.perf_counter() - t0,
+                 "train_psnr_last": float(np.mean(psnrs[-10:])) if psnrs else None}
+
+
+def prune(meshes: list[tuple[np.ndarray, np.ndarray]], attrs: list[LayerAttributes],
+          threshold: float) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[LayerAttributes]]:
+    """Drop triangles whose three opacities are below ``threshold`` (and unused vertices)."""
+    out_m, out_a = [], []
+    for (V, F), a in zip(meshes, attrs):
+        alpha = a.rgba[:, 3].numpy()
+        keep = (alpha[F] >= threshold).any(1)
+        V2, F2, rgba, sh = _subset(V, F[keep], a.rgba.numpy(), a.sh.numpy())
+        out_m.append((V2, F2))
+        out_a.append(LayerAttributes(torch.from_numpy(rgba), torch.from_numpy(sh)))
+    return out_m, out_a
+
+
+def bake(field: Any, aabb: np.ndarray, outer: tuple[np.ndarray, np.ndarray],
+         inner: tuple[np.ndarray, np.ndarray] | None, views: list[tuple[Any, torch.Tensor]],
+         background: tuple[float, float, float], up: tuple[float, float, float],
+         resolution: int, band: float, cfg: BakeConfig, variant: str | None = None,
+         progress: bool = False) -> BakedAsset:
+    """The whole bake (module docstring) -> a quantised `BakedAsset`."""
+    t0 = time.perf_counter()
+    budget = cfg.size_mb * 1e6
+    res = int(resolution)
+    for _ in range(4):  # coarser grids until the layers fit the budget (area ~ resolution^2)
+        layers = layer_meshes(field, aabb, res, cfg.levels, outer, inner, band, progress)
+        size = mesh_bytes(layers)
+        if size <= budget:
+            break
+        res = max(16, int(res * math.sqrt(budget / size) * 0.95))
+    else:
+        raise InputError(f"--size-mb {cfg.size_mb}: the layers take {size / 1e6:.1f} MB even "
+                         f"on a {res}^3 grid; allow more or bake fewer --levels")
+    t_layers = time.perf_counter() - t0
+    h = float(np.max((aabb[1] - aabb[0]) / (res - 1)))
+    levels = sorted(cfg.levels)
+    start = [LayerAttributes(*distilled_start(field, V, s, c, cfg.levels, h))
+             for (V, F, s), c in zip(layers, levels)]
+    meshes = [(V, F) for V, F, _ in layers]
+    first = max(1, (3 * cfg.steps) // 4)
+    attrs, rec1 = fit_layers(meshes, start, views, background, first, cfg, variant, progress)
+    tri_before = sum(len(F) for _, F in meshes)
+    meshes, attrs = prune(meshes, attrs, cfg.prune_alpha)
+    attrs, rec2 = fit_layers(meshes, attrs, views, background, max(1, cfg.steps - first), cfg,
+                             variant, progress)
+    asset = BakedAsset(
+        layers=[quantise(c, V, F, a.rgba, a.sh) for (V, F), a, c in zip(meshes, attrs, levels)],
+        background=tuple(float(x) for x in background), up=tuple(float(x) for x in up))
+    asset.meta = {"fit": {
+        "levels": levels, "resolution": res, "triangles_before_pruning": tri_before,
+        "triangles": sum(len(F) for _, F in meshes), "training_rays_hitting": rec1["rays"],
+        "steps": rec1["steps"] + rec2["steps"], "rays_per_step": cfg.rays,
+        "train_psnr_last": rec2["train_psnr_last"], "seconds_layers": t_layers,
+        "seconds_fit": rec1["seconds"] + rec2["seconds"],
+        "seconds": time.perf_counter() - t0}}
+    return asset

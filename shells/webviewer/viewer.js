@@ -1,0 +1,315 @@
+// The baked-shells viewer: draws layers.glb (shells-bake) with three.js, the compositing rule
+// of shells/render/baked.py on the GPU (or a software GL): for each layer, innermost first, a
+// depth pass (the layer's nearest fragment, any facing, behind nothing drawn before) and a
+// colour pass that keeps only the fragment at that depth and blends it "over":
+//     C = a * clamp(base + sh . d, 0, 1) + (1 - a) * C
+// with d the unit view direction in the asset's frame. Per vertex: COLOR_0 (base RGB, opacity),
+// _SHR/_SHG/_SHB (degree-1 SH axes of each channel, signed bytes scaled by the layer's sh_scale).
+//
+// URL parameters: view=I (start on test view I of cameras.json, its intrinsics and size),
+// width=W&height=H (canvas size; default: the window, or the view's size), show=layers.
+// window.shells exposes what the tests and bench/ measure (ready, setView, pixels, benchmark).
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+
+THREE.ColorManagement.enabled = false;  // the stored colours are display values: no conversion
+
+const params = new URLSearchParams(location.search);
+const MAX_LAYERS = 8;  // the layers-per-pixel view counts up to this many
+const PALETTE = [  // layers drawn: 0, 1, ..., >= 8 (a viridis ramp)
+  [0.0, 0.0, 0.0], [0.267, 0.005, 0.329], [0.283, 0.141, 0.458], [0.254, 0.265, 0.530],
+  [0.207, 0.372, 0.553], [0.164, 0.471, 0.558], [0.128, 0.567, 0.551], [0.135, 0.659, 0.518],
+  [0.993, 0.906, 0.144]];
+
+const VERTEX = /* glsl */ `
+precision highp float;
+uniform mat4 modelViewMatrix;
+uniform mat4 projectionMatrix;
+uniform vec3 eye;            // camera position in the asset's frame
+uniform float shScale;
+in vec3 position;
+in vec4 color;
+in vec4 _shr;
+in vec4 _shg;
+in vec4 _shb;
+out vec4 vBase;
+out vec3 vToPoint;
+out vec3 vShR;
+out vec3 vShG;
+out vec3 vShB;
+invariant gl_Position;       // the depth and colour passes must produce the same depths
+void main() {
+  vBase = color;
+  vShR = _shr.xyz * shScale;
+  vShG = _shg.xyz * shScale;
+  vShB = _shb.xyz * shScale;
+  vToPoint = position - eye;
+  gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
+}`;
+
+const FRAGMENT = /* glsl */ `
+precision highp float;
+in vec4 vBase;
+in vec3 vToPoint;
+in vec3 vShR;
+in vec3 vShG;
+in vec3 vShB;
+out vec4 outColor;
+void main() {
+#ifdef COUNT
+  outColor = vec4(1.0 / 255.0, 0.0, 0.0, 1.0);
+#else
+  vec3 d = normalize(vToPoint);
+  vec3 c = clamp(vBase.rgb + vec3(dot(vShR, d), dot(vShG, d), dot(vShB, d)), 0.0, 1.0);
+  outColor = vec4(c, vBase.a);
+#endif
+}`;
+
+const canvas = document.getElementById('canvas');
+const fpsText = document.getElementById('fps');
+const viewSelect = document.getElementById('view');
+
+const [asset, cams] = await Promise.all(
+  ['asset.json', 'cameras.json'].map((f) => fetch(f).then((r) => r.json())));
+const gltf = await new GLTFLoader().loadAsync(asset.glb);
+
+const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, alpha: false,
+                                           preserveDrawingBuffer: true, depth: true });
+renderer.outputColorSpace = THREE.LinearSRGBColorSpace;
+renderer.setPixelRatio(1);
+const gl = renderer.getContext();
+const background = new THREE.Color().setRGB(...asset.background);
+
+// the asset's frame -> glTF's y-up frame (the root node's rotation) and back
+const root = gltf.scene.getObjectByName('asset') || gltf.scene;
+gltf.scene.updateMatrixWorld(true);
+const toGltf = new THREE.Matrix4().fromArray(cams.world_to_gltf.flat()).transpose();
+const fromGltf = toGltf.clone().invert();
+const centre = new THREE.Vector3(...cams.centre).applyMatrix4(toGltf);
+
+// two meshes per layer sharing its geometry: depth pass, then colour (or count) pass
+const uniforms = { eye: { value: new THREE.Vector3() } };
+const scene = new THREE.Scene();
+const colourMaterials = [];
+const countMaterials = [];
+const layers = [];
+root.traverse((o) => { if (o.isMesh) layers.push(o); });
+layers.sort((a, b) => a.userData.layer - b.userData.layer);  // innermost first
+let bytes = 0;
+layers.forEach((mesh, k) => {
+  const geometry = mesh.geometry;
+  for (const name of Object.keys(geometry.attributes)) bytes += geometry.attributes[name].array.byteLength;
+  const shared = { eye: uniforms.eye, shScale: { value: mesh.userData.sh_scale } };
+  const base = { glslVersion: THREE.GLSL3, vertexShader: VERTEX, fragmentShader: FRAGMENT,
+                 uniforms: shared, side: THREE.DoubleSide, transparent: false };
+  const depth = new THREE.RawShaderMaterial({ ...base, colorWrite: false, depthWrite: true,
+                                              depthFunc: THREE.LessEqualDepth });
+  const blend = { depthWrite: false, depthFunc: THREE.EqualDepth, blending: THREE.CustomBlending,
+                  blendEquation: THREE.AddEquation };
+  const colour = new THREE.RawShaderMaterial({ ...base, ...blend,
+    blendSrc: THREE.SrcAlphaFactor, blendDst: THREE.OneMinusSrcAlphaFactor });
+  const count = new THREE.RawShaderMaterial({ ...base, ...blend, defines: { COUNT: 1 },
+    blendSrc: THREE.OneFactor, blendDst: THREE.OneFactor });
+  colourMaterials.push(colour);
+  countMaterials.push(count);
+  const m = root.matrixWorld;
+  for (const [material, order] of [[depth, 2 * k], [colour, 2 * k + 1]]) {
+    const pass = new THREE.Mesh(geometry, material);
+    pass.matrixAutoUpdate = false;
+    pass.matrix.copy(m);
+    pass.renderOrder = order;
+    pass.frustumCulled = false;
+    scene.add(pass);
+    if (material === colour) pass.userData.colourPass = true;
+  }
+});
+scene.updateMatrixWorld(true);
+
+// the layers-per-pixel view: counts into a target, then a palette on a full-screen quad
+const countTarget = new THREE.WebGLRenderTarget(1, 1, { depthBuffer: true });
+const quad = new THREE.Mesh(new THREE.PlaneGeometry(2, 2), new THREE.ShaderMaterial({
+  uniforms: { counts: { value: countTarget.texture },
+              palette: { value: PALETTE.map((c) => new THREE.Vector3(...c)) } },
+  vertexShader: 'varying vec2 vUv; void main() { vUv = uv; gl_Position = vec4(position.xy, 0.0, 1.0); }',
+  fragmentShader: `uniform sampler2D counts; uniform vec3 palette[${PALETTE.length}]; varying vec2 vUv;
+    void main() { int n = int(texture2D(counts, vUv).r * 255.0 + 0.5);
+                  gl_FragColor = vec4(palette[min(n, ${MAX_LAYERS})], 1.0); }`,
+  depthTest: false, depthWrite: false }));
+const quadScene = new THREE.Scene();
+quadScene.add(quad);
+const quadCamera = new THREE.OrthographicCamera(-1, 1, 1, -1, 0, 1);
+
+const camera = new THREE.PerspectiveCamera(45, 1, 0.01, 100);
+let show = params.get('show') === 'layers' ? 'layers' : 'colour';
+let fixedView = -1;
+let controls = null;
+
+function size(width, height) {
+  renderer.setSize(width, height, false);
+  canvas.style.width = `${width}px`;
+  canvas.style.height = `${height}px`;
+  countTarget.setSize(width, height);
+}
+
+function viewPose(i) {  // OpenCV camera-to-world of the asset's frame -> three.js camera, glTF frame
+  const v = cams.views[i];
+  const c2w = new THREE.Matrix4().fromArray(v.c2w_opencv.flat()).transpose();
+  const flip = new THREE.Matrix4().makeScale(1, -1, -1);  // OpenCV axes -> OpenGL axes
+  return new THREE.Matrix4().multiplyMatrices(toGltf, c2w).multiply(flip);
+}
+
+function intrinsics(i, width, height) {  // the projection of view i, scaled to width x height
+  const v = cams.views[i];
+  const sx = width / cams.width, sy = height / cams.height;
+  const fx = v.fx * sx, fy = v.fy * sy, cx = v.cx * sx, cy = v.cy * sy;
+  const n = camera.near, f = camera.far;
+  return new THREE.Matrix4().set(
+    2 * fx / width, 0, 1 - 2 * cx / width, 0,
+    0, 2 * fy / height, 2 * cy / height - 1, 0,
+    0, 0, -(f + n) / (f - n), -2 * f * n / (f - n),
+    0, 0, -1, 0);
+}
+
+function setClip(distance) {
+  const radius = distance;  // the asset lies within the cameras' distance of the centre
+  camera.near = Math.max(1e-3, 0.02 * radius);
+  camera.far = 4 * radius;
+}
+
+function setView(i) {  // -1: free orbit; otherwise test view i with its intrinsics
+  fixedView = i;
+  const width = +params.get('width') || (i >= 0 ? cams.width : window.innerWidth);
+  const height = +params.get('height') || (i >= 0 ? cams.height : window.innerHeight);
+  size(width, height);
+  const pose = viewPose(Math.max(i, 0));
+  const position = new THREE.Vector3().setFromMatrixPosition(pose);
+  setClip(position.distanceTo(centre));
+  if (i >= 0) {
+    if (controls) controls.enabled = false;
+    camera.matrixAutoUpdate = false;
+    camera.matrix.copy(pose);
+    camera.updateMatrixWorld(true);
+    camera.projectionMatrix.copy(intrinsics(i, width, height));
+    camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
+  } else {
+    camera.matrixAutoUpdate = true;
+    camera.position.copy(position);
+    camera.up.set(0, 1, 0);
+    camera.fov = 2 * Math.atan(cams.height / (2 * cams.views[0].fy)) * 180 / Math.PI;
+    camera.aspect = width / height;
+    camera.updateProjectionMatrix();
+    if (!controls) controls = new OrbitControls(camera, canvas);
+    controls.enabled = true;
+    controls.target.copy(centre);
+    controls.update();
+  }
+}
+
+function render() {
+  camera.updateMatrixWorld(true);
+  uniforms.eye.value.setFromMatrixPosition(camera.matrixWorld).applyMatrix4(fromGltf);
+  const counting = show === 'layers';
+  scene.traverse((o) => {
+    if (o.userData.colourPass) {
+      const k = colourMaterials.indexOf(o.material) >= 0 ? colourMaterials.indexOf(o.material)
+        : countMaterials.indexOf(o.material);
+      o.material = counting ? countMaterials[k] : colourMaterials[k];
+    }
+  });
+  if (counting) {
+    renderer.setRenderTarget(countTarget);
+    renderer.setClearColor(0x000000, 1);
+    renderer.clear();
+    renderer.render(scene, camera);
+    renderer.setRenderTarget(null);
+    renderer.render(quadScene, quadCamera);
+  } else {
+    renderer.setClearColor(background, 1);
+    renderer.render(scene, camera);
+  }
+}
+
+function finish() {  // wait for the GPU: a one-pixel read back
+  const px = new Uint8Array(4);
+  gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+}
+
+function pixels() {  // the canvas as RGB rows, top row first, base64
+  const w = gl.drawingBufferWidth, h = gl.drawingBufferHeight;
+  const rgba = new Uint8Array(w * h * 4);
+  gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, rgba);
+  const rgb = new Uint8Array(w * h * 3);
+  for (let y = 0; y < h; y++) {
+    for (let x = 0; x < w; x++) {
+      const s = ((h - 1 - y) * w + x) * 4, d = (y * w + x) * 3;
+      rgb[d] = rgba[s]; rgb[d + 1] = rgba[s + 1]; rgb[d + 2] = rgba[s + 2];
+    }
+  }
+  let text = '';
+  for (let i = 0; i < rgb.length; i += 0x8000) text += String.fromCharCode(...rgb.subarray(i, i + 0x8000));
+  return { width: w, height: h, rgb: btoa(text) };
+}
+
+function benchmark(frames = 60, width = cams.width, height = cams.height) {
+  // a synchronous orbit of `frames` frames at the view-0 distance and elevation; ms per frame
+  params.set('width', width);
+  params.set('height', height);
+  setView(-1);
+  const start = new THREE.Vector3().setFromMatrixPosition(viewPose(0)).sub(centre);
+  const r = start.length(), el = Math.asin(start.y / r), az0 = Math.atan2(start.z, start.x);
+  render(); finish();  // compile the shaders, upload the buffers
+  const ms = [];
+  for (let k = 0; k < frames; k++) {
+    const az = az0 + 2 * Math.PI * k / frames;
+    camera.position.set(centre.x + r * Math.cos(el) * Math.cos(az), centre.y + r * Math.sin(el),
+                        centre.z + r * Math.cos(el) * Math.sin(az));
+    camera.lookAt(centre);
+    const t0 = performance.now();
+    render(); finish();
+    ms.push(performance.now() - t0);
+  }
+  const sorted = [...ms].sort((a, b) => a - b);
+  return { frames, width, height, median_ms: sorted[Math.floor(frames / 2)], ms,
+           renderer: gl.getParameter(gl.VERSION) + ' / ' + (() => {
+             const ext = gl.getExtension('WEBGL_debug_renderer_info');
+             return ext ? gl.getParameter(ext.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
+           })() };
+}
+
+// the HUD: fps of the interactive loop, colour / layers per pixel, camera
+cams.views.forEach((_, i) => viewSelect.add(new Option(`test view ${i}`, String(i))));
+viewSelect.addEventListener('change', () => { setView(+viewSelect.value); });
+for (const input of document.querySelectorAll('input[name=show]')) {
+  input.checked = input.value === show;
+  input.addEventListener('change', () => { show = input.value; legend(); });
+}
+function legend() {
+  const el = document.getElementById('legend');
+  el.style.display = show === 'layers' ? 'block' : 'none';
+  el.innerHTML = 'layers drawn: ' + PALETTE.map((c, n) =>
+    `<span style="background:rgb(${c.map((x) => Math.round(255 * x)).join(',')})"></span>${n === MAX_LAYERS ? '≥' + n : n} `).join('');
+}
+legend();
+
+const start = params.has('view') ? +params.get('view') : -1;
+viewSelect.value = String(start);
+setView(start);
+window.addEventListener('resize', () => { if (fixedView < 0 && !params.has('width')) setView(-1); });
+
+let last = performance.now(), smooth = 0;
+const triangles = layers.reduce((n, m) => n + m.geometry.index.count / 3, 0);
+function loop() {
+  render();
+  const now = performance.now();
+  smooth = smooth ? 0.9 * smooth + 0.1 * (now - last) : now - last;
+  last = now;
+  fpsText.textContent = `${(1000 / smooth).toFixed(1)} fps · ${layers.length} layers · ` +
+    `${(triangles / 1e6).toFixed(2)} M triangles · ${(bytes / 1e6).toFixed(1)} MB`;
+  if (!window.shells.paused) requestAnimationFrame(loop);
+}
+window.shells = { ready: true, paused: params.has('paused'), setView,
+                  setShow: (s) => { show = s; legend(); }, render, finish, pixels, benchmark,
+                  layers: layers.length, triangles };
+if (!window.shells.paused) requestAnimationFrame(loop);
+else render();
