@@ -5,10 +5,13 @@
     python docs/figures.py animation OUT.png DIR[:LABEL] [DIR[:LABEL] ...]
         [--frames 0 8 16 24] [--size 160]
     python docs/figures.py curve OUT.png RUN[:LABEL] [RUN[:LABEL] ...] [--title TEXT]
+    python docs/figures.py baked OUT.png RUN [--size 480] [--gl llvmpipe]
 
 demo: ground truth | full-ray render | band render | band samples per pixel, one row per view.
 animation: chosen frames of each animation in a row, with its ms/frame.
 curve: stage 1's running test curve (RUN/train_curve.jsonl) against wall time, one line a run.
+baked: screenshots of RUN's baked asset in the exported browser viewer (headless Chromium):
+colour with the HUD, and layers per pixel.
 """
 
 from __future__ import annotations
@@ -110,11 +113,46 @@ def curve(args: argparse.Namespace) -> int:
     return 0
 
 
+def baked(args: argparse.Namespace) -> int:
+    """Screenshots of RUN/baked in the exported three.js viewer, in headless Chromium with a
+    software GL: the colour view with its HUD (fps, layers, triangles, size) beside the layers
+    per pixel view, from the viewer's start camera (test view 0's position)."""
+    import base64
+    import tempfile
+    import threading
+    import time
+
+    from shells.baked import export_web, static_server
+    from shells.browser import Browser
+
+    with tempfile.TemporaryDirectory() as tmp:
+        export_web(args.run, Path(tmp) / "web")
+        srv = static_server(Path(tmp) / "web", "127.0.0.1", 0)
+        threading.Thread(target=srv.serve_forever, daemon=True).start()
+        url = f"http://127.0.0.1:{srv.server_address[1]}/?width={args.size}&height={args.size}"
+        shots = []
+        try:
+            with Browser(gl=args.gl, size=(args.size, args.size)) as b:
+                for show in ("colour", "layers"):
+                    b.open(f"{url}&show={show}", ready="window.shells && window.shells.ready",
+                           timeout=300)
+                    time.sleep(3.0)  # the fps readout settles
+                    shot = b.call("Page.captureScreenshot", timeout=120)
+                    shots.append(iio.imread(base64.b64decode(shot["data"]))[..., :3])
+        finally:
+            srv.shutdown()
+    h = min(x.shape[0] for x in shots)
+    gap = np.full((h, 4, 3), 255, np.uint8)
+    iio.imwrite(args.out, np.concatenate([shots[0][:h], gap, shots[1][:h]], 1))
+    print(f"wrote {args.out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python docs/figures.py",
                                 description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
-    for fn in (demo, animation, curve):
+    for fn in (demo, animation, curve, baked):
         doc = " ".join(fn.__doc__.split())
         sub.add_parser(fn.__name__, help=doc.split(". ")[0], description=doc).set_defaults(fn=fn)
     sp = sub.choices["demo"]
@@ -135,6 +173,11 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("out")
     sp.add_argument("runs", nargs="+", metavar="RUN[:LABEL]")
     sp.add_argument("--title", default=None)
+    sp = sub.choices["baked"]
+    sp.add_argument("out")
+    sp.add_argument("run")
+    sp.add_argument("--size", type=int, default=480, help="canvas size in pixels")
+    sp.add_argument("--gl", default="llvmpipe", choices=["llvmpipe", "swiftshader"])
     args = p.parse_args(argv)
     return args.fn(args)
 

@@ -37,7 +37,8 @@ THREE_FILES = ("build/three.module.js", "build/three.core.js",
 
 def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
              resolution: int | None = None, size_mb: float | None = None,
-             steps: int | None = None, progress: bool = False) -> dict[str, Any]:
+             steps: int | None = None, teacher_views: int | None = None,
+             progress: bool = False) -> dict[str, Any]:
     """Bake RUN's stage-2 field into RUN/baked (module docstring); returns asset.json's record."""
     from shells.data.camera_paths import scene_frame
     from shells.data.datasets import load_dataset
@@ -52,9 +53,12 @@ def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
                          f"shells-finetune {run.root} first")
     outer, inner = shell_meshes(run)
     cfg = BakeConfig()
-    for name, value in (("levels", levels), ("size_mb", size_mb), ("steps", steps)):
+    for name, value in (("levels", levels), ("size_mb", size_mb), ("steps", steps),
+                        ("teacher_views", teacher_views)):
         if value is not None:
             setattr(cfg, name, tuple(value) if name == "levels" else value)
+    if teacher_views is not None and teacher_views < 0:
+        raise InputError(f"--teacher-views {teacher_views}: must be >= 0")
     if cfg.size_mb <= 0 or cfg.steps < 1 or not cfg.levels or 0.0 not in cfg.levels:
         raise InputError(f"--size-mb {cfg.size_mb} / --steps {cfg.steps} / --levels "
                          f"{list(cfg.levels)}: need a positive size, at least one step and "
@@ -63,16 +67,18 @@ def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
     bg = tuple(fcfg.data.background)
     data = load_dataset(meta["data"], "train", downscale=int(meta["downscale"]), background=bg)
     aabb = field.aabb.cpu().numpy().astype(np.float64)
-    res = int(resolution or pixel_resolution(data.cameras, aabb, fcfg.shell.resolution))
+    res = int(resolution or pixel_resolution(data.cameras, aabb, fcfg.shell.resolution,
+                                             cfg.cells_per_pixel))
     if res < 16:
         raise InputError(f"--resolution {res}: must be at least 16")
     h = float((aabb[1] - aabb[0]).max()) / (res - 1)
     band = max(fcfg.shell.dilate_zeta, fcfg.shell.erode_zeta) + 2.0 * h
     up = tuple(float(x) for x in scene_frame(data.cameras, data.aabb)[1])
     views = [(data.cameras, data.images)]
-    n_teacher = len(data.cameras) if cfg.teacher_views is None else int(cfg.teacher_views)
+    n_teacher = (cfg.teacher_per_view * len(data.cameras) if cfg.teacher_views is None
+                 else int(cfg.teacher_views))
     if n_teacher > 0:
-        views.append(teacher_views(run, field, fcfg, data, n_teacher, progress))
+        views.append(render_teacher(run, field, fcfg, data, n_teacher, progress))
     asset = bake(field, aabb, outer, inner, views, bg, up, res, band, cfg, fcfg.render.variant,
                  progress)
     asset.meta["source"] = {"run": str(run.root), "stage": "stage2",
@@ -84,15 +90,16 @@ def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
     return record
 
 
-def pixel_resolution(cams: Any, aabb: np.ndarray, cap: int) -> int:
-    """The layer grid whose cells are about one training pixel wide at the scene centre (the
-    median camera's footprint), at most ``cap``: per-vertex colours finer than the photos'
-    pixels would be seen by too few rays to be fitted."""
+def pixel_resolution(cams: Any, aabb: np.ndarray, cap: int, cells_per_pixel: float) -> int:
+    """The layer grid with ``cells_per_pixel`` cells across one training pixel's footprint at
+    the scene centre (the median camera's), at most ``cap``: vertices much finer than the
+    photos' pixels are seen by too few rays to be fitted, much coarser ones blur the texture."""
     from shells.data.camera_paths import scene_frame
 
     _, _, radius, _ = scene_frame(cams, aabb)
     footprint = radius / float(torch.median(cams.fx))
-    return int(min(cap, max(16, math.ceil(float(np.max(aabb[1] - aabb[0])) / footprint))))
+    cells = float(np.max(aabb[1] - aabb[0])) / footprint * cells_per_pixel
+    return int(min(cap, max(16, math.ceil(cells))))
 
 
 def turned_cameras(cams: Any, aabb: Any, n: int, seed: int = 0) -> Any:
@@ -114,7 +121,7 @@ def turned_cameras(cams: Any, aabb: Any, n: int, seed: int = 0) -> Any:
     return out
 
 
-def teacher_views(run: RunDir, field: Any, fcfg: Any, data: Any, n: int,
+def render_teacher(run: RunDir, field: Any, fcfg: Any, data: Any, n: int,
                   progress: bool = False) -> tuple[Any, torch.Tensor]:
     """The band render of the stage-2 field (one ray per pixel) from ``n`` `turned_cameras`:
     (cameras, images [n, H, W, 3])."""

@@ -623,10 +623,13 @@ def _bake_args(p: argparse.ArgumentParser) -> None:
                    help="level sets u = f / s of the layers, 0 (the surface) included "
                         "(default -2 0 2)")
     p.add_argument("--resolution", type=int, default=None,
-                   help="grid of the layer meshes (default: cells about one training pixel "
-                        "wide at the scene centre, at most the shells' resolution)")
+                   help="grid of the layer meshes (default: 1.25 cells across a training "
+                        "pixel's footprint at the scene centre, at most the shells' resolution)")
     p.add_argument("--steps", type=int, default=None,
                    help="fitting steps (default 600)")
+    p.add_argument("--teacher-views", type=int, default=None, metavar="N",
+                   help="band renders of the stage-2 field from N turned training cameras, "
+                        "fitted beside the photos (default: 4 per training view; 0: photos only)")
 
 
 def _bake(args: argparse.Namespace) -> int:
@@ -634,7 +637,8 @@ def _bake(args: argparse.Namespace) -> int:
 
     with _locked_run(args.run, "shells-bake"):
         rec = bake_run(args.run, levels=args.levels, resolution=args.resolution,
-                       size_mb=args.size_mb, steps=args.steps, progress=True)
+                       size_mb=args.size_mb, steps=args.steps,
+                       teacher_views=args.teacher_views, progress=True)
     fit = rec["fit"]
     print(f"baked {len(rec['layers'])} layers, {fit['triangles']} triangles, "
           f"{rec['size_bytes'] / 1e6:.1f} MB, training PSNR {fit['train_psnr_last']:.2f} dB, "

@@ -218,6 +218,10 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
         from shells.render.baked import LayerScene, read_asset
 
         scene = LayerScene.of(read_asset(run.baked), variant)
+        if spp is None:  # as the asset was fitted (and as the browser's MSAA draws it)
+            cfg.update({"render": {"spp": int(scene.asset.meta.get("fit", {}).get("spp", 1))}},
+                       "the baked asset")
+            rc = cfg.render
     data = load_dataset(meta["data"], "train" if path else split,
                         downscale=int(meta["downscale"]), background=bg)
     if path:

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from shells.render.baked import (BakedAsset, LayerScene, quantise, read_asset, render_baked,
-                                 up_matrix, write_asset)
+                                 shade, up_matrix, write_asset)
 
 ROOT = Path(__file__).resolve().parents[1]
 NODE = shutil.which("node")
@@ -187,18 +187,8 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
     assert THREE.is_dir(), "CI is set but web/node_modules/three is missing: npm ci --prefix web"
     run = tmp_path / "run"
     shutil.copytree(baked_run, run)
-    import trimesh
-
-    rng = np.random.default_rng(0)
-    layers = []
-    for k, radius in enumerate((0.3, 0.45, 0.6)):  # three nested spheres about the origin
-        sphere = trimesh.creation.icosphere(subdivisions=3, radius=radius)
-        n = len(sphere.vertices)
-        rgba = np.concatenate([rng.uniform(0, 1, (n, 3)), rng.uniform(0.25, 0.8, (n, 1))], 1)
-        layers.append(quantise(k - 1.0, sphere.vertices, sphere.faces, torch.tensor(rgba),
-                               torch.tensor(rng.uniform(-0.5, 0.5, (n, 3, 3)))))
     asset = read_asset(run / "baked")
-    asset.layers = layers
+    asset.layers = nested_spheres().layers
     write_asset(asset, run / "baked")
     out = tmp_path / "web"
     rec = export_web(run, out)
@@ -209,7 +199,9 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
     url = f"http://127.0.0.1:{srv.server_address[1]}/"
     try:
         with Browser(gl="swiftshader", offline=True) as b:
-            b.open(url + "?view=0&paused=1", ready="window.shells && window.shells.ready")
+            # one sample a pixel, as render_baked's rays through the pixel centres
+            b.open(url + "?view=0&paused=1&msaa=0",
+                   ready="window.shells && window.shells.ready")
             px = b.evaluate("(window.shells.setView(0), window.shells.render(), "
                             "window.shells.pixels())")
             layers = b.evaluate("(window.shells.setShow('layers'), window.shells.render(), "
@@ -238,3 +230,70 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
     counts = np.frombuffer(base64.b64decode(layers["rgb"]), np.uint8).reshape(img.shape)
     none = drawn.reshape(img.shape[:2]).numpy() == 0
     assert (counts[none] == 0).mean() > 0.98 and (counts[~none].sum(-1) > 0).mean() > 0.98
+
+
+def test_mesh_edges_are_unique_and_undirected():
+    from shells.train.bake import mesh_edges
+
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    assert mesh_edges(F).tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [2, 3]]
+
+
+def test_fit_recovers_a_flat_colour_and_an_opacity_through_the_averaged_rays():
+    """One opaque-ish quad in front of a camera, photographed as a flat colour over a black
+    background (a = 0.7, c = (0.2, 0.6, 0.4): pixel 0.14, 0.42, 0.28 where the quad covers
+    it): the fit, starting from grey at half opacity, recovers the pixels."""
+    from shells.data.camera_paths import look_at
+    from shells.data.cameras import pinhole_cameras
+    from shells.render.baked import LayerAttributes
+    from shells.train.bake import BakeConfig, fit_layers
+
+    V, F = quad(0.0, -1.0, 1.0)
+    c2w = torch.stack([look_at(np.array([0.0, 0.0, -3.0]), np.zeros(3), np.array([0, 1.0, 0]))])
+    cams = pinhole_cameras(c2w.float(), fx=13.0, width=16, height=16)  # edges mid-pixel
+    start = LayerAttributes(torch.tensor([[0.5, 0.5, 0.5, 0.5]] * 4), torch.zeros(4, 3, 3))
+    o, d = cams.pixel_rays(0, 4)
+    covered = LayerScene([(V, F)]).cast(o, d)[0].prim.reshape(-1, 4) >= 0
+    share = covered.float().mean(1)  # the quad's coverage of each pixel
+    pixel = torch.tensor([0.14, 0.42, 0.28])
+    photo = (share[:, None] * pixel).reshape(1, 16, 16, 3)
+    assert ((share > 0) & (share < 1)).any() and (share == 0).any()  # edges mid-pixel
+    cfg = BakeConfig(steps=300, rays=4096, lr=0.05, smooth=0.0, spp=4)
+    (fitted,), rec = fit_layers([(V, F)], [start], [(cams, photo)], (0.0, 0.0, 0.0),
+                                cfg.steps, cfg)
+    assert rec["pixels"] == int((share > 0).sum())  # pixels with a hit among their 4 rays
+    scene = LayerScene([(V, F)])
+    colour, _ = shade(scene.faces, [fitted], scene.cast(o, d), d, torch.zeros(3))
+    image = colour.reshape(-1, 4, 3).mean(1)  # as shells-render --spp 4 draws the pixels
+    assert float((image - photo.reshape(-1, 3)).abs().max()) < 0.02
+
+
+def nested_spheres(seed: int = 0) -> BakedAsset:
+    """Three nested spheres about the origin with random colours, opacities and SH terms."""
+    import trimesh
+
+    rng = np.random.default_rng(seed)
+    layers = []
+    for k, radius in enumerate((0.3, 0.45, 0.6)):
+        sphere = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+        n = len(sphere.vertices)
+        rgba = np.concatenate([rng.uniform(0, 1, (n, 3)), rng.uniform(0.25, 0.8, (n, 1))], 1)
+        layers.append(quantise(k - 1.0, sphere.vertices, sphere.faces, torch.tensor(rgba),
+                               torch.tensor(rng.uniform(-0.5, 0.5, (n, 3, 3)))))
+    return BakedAsset(layers=layers, background=(1.0, 1.0, 1.0))
+
+
+def test_the_drjit_renderer_matches_the_torch_reference():
+    from shells.render.baked import render_baked_drjit
+
+    scene = LayerScene.of(nested_spheres())
+    g = torch.Generator().manual_seed(1)
+    o = torch.nn.functional.normalize(torch.randn(4096, 3, generator=g), dim=1) * 2.0
+    target = 0.5 * torch.rand(4096, 3, generator=g) - 0.25
+    d = torch.nn.functional.normalize(target - o, dim=1)
+    ref, ref_drawn = render_baked(scene, o, d, (1.0, 1.0, 1.0))
+    colour, drawn = render_baked_drjit(scene, o, d, (1.0, 1.0, 1.0))
+    fast = torch.stack([colour.x.torch(), colour.y.torch(), colour.z.torch()], 1)
+    assert torch.equal(torch.from_numpy(np.asarray(drawn)).long(), ref_drawn.long())
+    assert (ref_drawn >= 2).float().mean() > 0.5  # most rays cross several layers
+    assert torch.allclose(fast, ref, atol=1e-5)

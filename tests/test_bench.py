@@ -19,7 +19,7 @@ SCRIPTS = sorted(p.stem for p in (ROOT / "bench").glob("*.py")
                  if p.stem not in ("__init__", "report"))
 SUBCOMMANDS = {"diagnostics": ["error", "ball", "weight", "slope"],
                "step_speed": ["stage1", "stage2"],
-               "figures": ["demo", "animation", "curve"]}
+               "figures": ["demo", "animation", "curve", "baked"]}
 
 
 def help_text(run, argv: list[str], capsys) -> str:

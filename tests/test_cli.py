@@ -19,7 +19,7 @@ def console_scripts() -> dict[str, str]:
 
 def test_console_scripts_are_the_rows_of_the_table():
     scripts = console_scripts()
-    assert set(scripts) == set(cli.COMMANDS) and len(scripts) == 11
+    assert set(scripts) == set(cli.COMMANDS) and len(scripts) == 13
     for prog, target in scripts.items():
         module, name = target.split(":")
         assert module == "shells.cli"

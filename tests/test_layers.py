@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RANKS = {
     "shells": 0,  # the package's __init__ (a docstring and the version)
     "shells.errors": 0,
+    "shells.browser": 1,
     "shells.files": 1, "shells.progress": 1,
     "shells.config": 2, "shells.device": 2, "shells.metrics": 2, "shells.distributed": 2,
     "shells.data": 3, "scenes": 3,
@@ -36,7 +37,7 @@ RANKS = {
     "shells.render": 6,
     "shells.run": 7, "shells.presets": 7,
     "shells.train": 8,
-    "shells.pipeline": 9, "shells.viewer": 9,
+    "shells.pipeline": 9, "shells.viewer": 9, "shells.baked": 9,
     "shells.cli": 10,
     "bench": 11,
 }

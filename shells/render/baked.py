@@ -1,6 +1,6 @@
 """Baked shells: the band's appearance on a few nested, semi-transparent layer meshes.
 
-A baked asset is K triangle meshes inside the band (`shells.bake` builds and fits them), drawn
+A baked asset is K triangle meshes inside the band (`shells.train.bake` builds and fits them), drawn
 in a fixed order, innermost first. Every vertex carries a base colour and an opacity (RGBA,
 8 bits each) and three degree-1 spherical-harmonic axes per colour channel (8-bit signed, one
 scale per layer). Along a ray through pixel p the renderer does what a rasteriser with a depth
@@ -14,9 +14,11 @@ the fragments at the stored depth, blended "over"):
         depth = min(depth, t_k)
 
 with d the unit ray direction in the asset's (world) frame. This module is that renderer on
-the CPU, in torch on Mitsuba's ray casts (`LayerScene`): the same code renders test views
-(`shells-render --mode baked`) and, on float attributes with autograd, fits them to the photos
-(`shells.bake.fit`). The browser viewer (`shells.web`) draws the same GLB with three.js.
+the CPU on Mitsuba's ray casts (`LayerScene`): in torch (`shade`, `render_baked`: the
+reference, and, on float attributes with autograd, what `shells.train.bake` fits to the photos)
+and as Dr.Jit kernels (`render_baked_drjit`, what `shells-render --mode baked` runs; a test
+holds the two equal). The browser viewer (shells/webviewer/viewer.js) draws the same GLB with
+three.js.
 
 Files (`write_asset` / `read_asset`): RUN/baked/layers.glb (glTF 2.0 binary: one mesh per
 layer, POSITION float32, COLOR_0 RGBA unsigned bytes, the SH axes as the application-specific
@@ -26,7 +28,6 @@ attributes _SHR, _SHG, _SHB: normalised signed bytes, VEC4 with w = 0) and RUN/b
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 from typing import Any
@@ -130,6 +131,15 @@ class LayerScene:
         scene.attributes = [x.attributes() for x in asset.layers]
         return scene
 
+    def flat(self) -> list[tuple[Any, Any]]:
+        """Per layer, for `render_baked_drjit`: its triangles as a flat mi.UInt32 and its
+        attributes as a flat mi.Float of 13 a vertex (RGBA, then SH red, green, blue x/y/z)."""
+        if getattr(self, "_flat", None) is None:
+            self._flat = [(mi.UInt32(F.reshape(-1).numpy().astype(np.uint32)), mi.Float(
+                torch.cat([a.rgba, a.sh.reshape(len(a.sh), 9)], 1).reshape(-1).numpy()))
+                for F, a in zip(self.faces, self.attributes)]
+        return self._flat
+
     def cast(self, origins: Any, dirs: Any) -> list[LayerHits]:
         """Each layer's nearest hit of the rays ([R, 3] torch / numpy)."""
         o = to_point3f(origins, mi.Point3f)
@@ -182,12 +192,47 @@ def shade(faces: list[torch.Tensor],  # per layer [m, 3] int64
 
 def render_baked(scene: LayerScene, origins: torch.Tensor, dirs: torch.Tensor,
                  background: tuple[float, float, float]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Colour [R, 3] and layers drawn [R] of rays through the baked asset of ``scene``."""
+    """Colour [R, 3] and layers drawn [R] of rays through the baked asset of ``scene``: the
+    reference in torch (`shade`, the rule the fit differentiates)."""
     hits = scene.cast(origins, dirs)
     d = torch.as_tensor(dirs, dtype=torch.float32)
     with torch.no_grad():
         return shade(scene.faces, scene.attributes, hits, d,
                      torch.tensor(background, dtype=torch.float32))
+
+
+def render_baked_drjit(scene: LayerScene, origins: Any, dirs: Any,
+                       background: tuple[float, float, float]) -> tuple[Any, Any]:
+    """`render_baked` as Dr.Jit kernels, the cast, the attribute gathers and the blending of a
+    layer traced together (no torch round trip): mi.Color3f and layers drawn (mi.UInt32)."""
+    o = to_point3f(origins, mi.Point3f)
+    d = dr.normalize(to_point3f(dirs, mi.Vector3f))
+    ray = mi.Ray3f(o, d)
+    colour = mi.Color3f(*background)
+    depth = dr.full(mi.Float, dr.inf, dr.width(d))
+    drawn = dr.zeros(mi.UInt32, dr.width(d))
+    for sc, flat in zip(scene.scenes, scene.flat()):
+        if sc is None:
+            continue
+        F, A = flat  # F: 3 indices a triangle; A: 13 floats a vertex (RGBA, SH r, g, b x/y/z)
+        pi = sc.ray_intersect_preliminary(ray, coherent=True)
+        hit = pi.is_valid()
+        draw = hit & (pi.t <= depth)
+        prim = mi.UInt32(pi.prim_index)
+        w = (1.0 - pi.prim_uv.x - pi.prim_uv.y, pi.prim_uv.x, pi.prim_uv.y)
+        vi = [dr.gather(mi.UInt32, F, prim * 3 + j, draw) * 13 for j in range(3)]
+
+        def attr(c: int) -> Any:
+            return sum(w[j] * dr.gather(mi.Float, A, vi[j] + c, draw) for j in range(3))
+
+        a = attr(3)
+        rgb = [dr.clip(attr(c) + attr(4 + 3 * c) * d.x + attr(5 + 3 * c) * d.y
+                       + attr(6 + 3 * c) * d.z, 0.0, 1.0) for c in range(3)]
+        colour = dr.select(draw, a * mi.Color3f(*rgb) + (1.0 - a) * colour, colour)
+        drawn += dr.select(draw, 1, 0)
+        depth = dr.select(hit, dr.minimum(depth, pi.t), depth)
+    dr.eval(colour, drawn)
+    return colour, drawn
 
 
 # ---------------------------------------------------------------------------------------------
@@ -233,7 +278,7 @@ def write_asset(asset: BakedAsset, folder: Path) -> None:
         for name, acc in zip(SH_CHANNELS, shs):
             setattr(attributes, name, acc)
         meshes.append(g.Mesh(name=f"layer{k}", primitives=[g.Primitive(
-            attributes=attributes, indices=ind, material=0)],
+            attributes=attributes, indices=ind, material=0 if layer.level == 0 else 1)],
             extras={"layer": k, "level": layer.level, "sh_scale": layer.sh_scale}))
         nodes.append(g.Node(name=f"layer{k}", mesh=len(meshes) - 1))
     # glTF is y-up: one root node turns the capture's up axis onto +y
@@ -242,12 +287,15 @@ def write_asset(asset: BakedAsset, folder: Path) -> None:
     gltf = g.GLTF2(
         asset=g.Asset(version="2.0", generator="shells-bake"),
         scene=0, scenes=[g.Scene(nodes=[len(nodes)])], nodes=nodes + [root], meshes=meshes,
-        materials=[g.Material(name="base colour (vertex colours; SH and opacity in the "
-                                   "viewer)", doubleSided=True,
+        # for other glTF viewers: the surface layer opaque, the others blended by their
+        # opacity (COLOR_0's alpha); the shells viewer draws all with its own shader
+        materials=[g.Material(name=name, doubleSided=True, alphaMode=mode,
                               pbrMetallicRoughness=g.PbrMetallicRoughness(
                                   baseColorFactor=[1, 1, 1, 1], metallicFactor=0.0,
                                   roughnessFactor=1.0),
-                              extensions={"KHR_materials_unlit": {}})],
+                              extensions={"KHR_materials_unlit": {}})
+                   for name, mode in (("surface layer: vertex colours", "OPAQUE"),
+                                      ("side layers: vertex colours and opacity", "BLEND"))],
         extensionsUsed=["KHR_materials_unlit"],
         accessors=accessors, bufferViews=views, buffers=[g.Buffer(byteLength=len(blob))])
     gltf.set_binary_blob(bytes(blob))

@@ -51,7 +51,8 @@ def rays_per_batch(cfg: RenderConfig, mode: str) -> int:
     fit both cfg.chunk_samples and the memory budget cfg.memory_mb."""
     K = cfg.spp
     per_ray = {"full": cfg.full_samples,  # occupancy: samples held per live ray and round
-               "occupancy": cfg.occ_chunk, "baked": 4}.get(mode, ((cfg.dp_max + 1) // 2) * cfg.n_max)
+               "occupancy": cfg.occ_chunk,  # baked: no samples; a layer's hit and attributes
+               "baked": 4}.get(mode, ((cfg.dp_max + 1) // 2) * cfg.n_max)
     by_samples = cfg.chunk_samples // max(per_ray * K, 1)
     by_memory = (cfg.memory_mb << 20) // (K * (BYTES_PER_RAY + per_ray * BYTES_PER_SAMPLE))
     return max(1, min(by_samples, by_memory)) * K
@@ -84,11 +85,9 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
         return render_intervals(field, o, d, box_intervals(o, d, aabb), cfg, background,
                                 fixed=cfg.full_samples)[:2]
     if mode == "baked":
-        from shells.render.baked import render_baked
+        from shells.render.baked import render_baked_drjit
 
-        colour, count = render_baked(scene, origins, dirs, background)
-        return (dr.unravel(mi.Color3f, mi.Float(colour.reshape(-1))),
-                mi.UInt32(count.to(torch.int32).numpy().astype("uint32")))
+        return render_baked_drjit(scene, o, d, background)
     if mode == "occupancy":
         colour, _, count = render_occupancy(field, o, d, cfg, aabb, background)
         return colour, count

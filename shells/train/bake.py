@@ -7,10 +7,12 @@
    surface, |c| s, is at least one grid step (elsewhere it would repeat the surface layer).
 2. Start values distilled from the field: base colour = the radiance seen along -normal,
    opacity = the NeuS opacity of the layer's slab of u (the innermost slab is solid, as M- is).
-3. Fit (`fit_layers`): every training ray is cast once against each layer (Mitsuba) and its
-   hits cached; the per-vertex attributes are then fitted with Adam to the photos through
-   `shells.render.baked.shade`, the compositing rule the viewers apply. Triangles left fully
-   transparent are dropped, the rays cast again and the fit continued on what is kept.
+3. Fit (`fit_layers`): every pixel of the given views (the photos, and the caller's band
+   renders of the field from other cameras) is cast once against each layer with ``spp``
+   rays (Mitsuba) and the hits cached; the per-vertex attributes are then fitted with Adam to
+   the pixels, a pixel being the mean of its rays through `shells.render.baked.shade` (the
+   compositing rule the viewers apply), with a smoothness term along mesh edges. Triangles
+   left fully transparent are dropped, the rays cast again and the fit continued on the rest.
 """
 
 from __future__ import annotations
@@ -34,15 +36,22 @@ BYTES_PER_TRIANGLE = 12
 @dataclass
 class BakeConfig:
     levels: tuple[float, ...] = (-2.0, 0.0, 2.0)  # u = f / s of the layers (0: the surface)
-    resolution: int | None = None  # grid of the layer meshes; None = the shells' (shell.resolution)
+    resolution: int | None = None  # grid of the layer meshes; None: `cells_per_pixel`
+    cells_per_pixel: float = 1.25  # grid cells across a training pixel's footprint (at most
+    # the shells' grid): on lego 1/4, 256 cells (1.24 a pixel) beat 207 (one a pixel)
     size_mb: float = 60.0  # budget of the GLB; the grid is made coarser until the layers fit
     steps: int = 600  # Adam steps in all (three quarters before the pruning, the rest after)
-    rays: int = 1 << 17  # training rays per step
+    rays: int = 1 << 17  # training rays per step (pixels x spp)
+    smooth: float = 0.1  # weight of the squared attribute differences along mesh edges
+    smooth_edges: int = 1 << 18  # edges drawn per step for that term
+    spp: int = 4  # rays per pixel, averaged as `shells-render --spp` and 4x MSAA draw a pixel
+    max_pixels: int | None = 6_000_000  # a random share of the pixels beyond this many
     lr: float = 0.05  # start learning rate (on logits and SH), decayed 10x over the schedule
     prune_alpha: float = 1.5 / 255  # a triangle whose three opacities are below this goes
-    teacher_views: int | None = None  # band renders of the field between the training cameras
-    # added to the photos (None: as many as training views; 0: none): they hold the vertices
-    # that the photos alone leave free
+    teacher_views: int | None = None  # band renders of the field from turned training cameras
+    # added to the photos (None: teacher_per_view per training view; 0: none): they hold the
+    # vertices that the photos alone leave free
+    teacher_per_view: int = 4
     seed: int = 0
 
 
@@ -95,6 +104,12 @@ def _subset(V: np.ndarray, F: np.ndarray, *per_vertex: np.ndarray) -> tuple[np.n
     return (V[used], remap[F]) + tuple(a[used] for a in per_vertex)
 
 
+def mesh_edges(F: np.ndarray) -> np.ndarray:
+    """The unique edges [E, 2] (int64) of triangles F [m, 3]."""
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
+    return np.unique(np.sort(e, 1), axis=0)
+
+
 def mesh_bytes(meshes: list[tuple[np.ndarray, np.ndarray, Any]]) -> int:
     return sum(len(V) * BYTES_PER_VERTEX + len(F) * BYTES_PER_TRIANGLE for V, F, _ in meshes)
 
@@ -125,32 +140,48 @@ def distilled_start(field: Any, V: np.ndarray, s: np.ndarray, level: float,
 
 @dataclass
 class RayCache:
-    """The training rays that hit a layer: directions [R, 3], target colours [R, 3], hits."""
+    """The training pixels whose rays hit a layer: target colours [P, 3]; their ``spp`` rays
+    each (a pixel's contiguous): directions [P * spp, 3] and hits."""
 
     d: torch.Tensor
     target: torch.Tensor
     hits: list[LayerHits]
+    spp: int
+
+    def batch(self, pixels: torch.Tensor) -> tuple[torch.Tensor, list[LayerHits]]:
+        """Ray indices [B * spp] of ``pixels`` [B], and their hits."""
+        rays = (pixels[:, None] * self.spp + torch.arange(self.spp)).reshape(-1)
+        return self.d[rays], [h.take(rays) for h in self.hits]
 
 
-def cache_rays(scene: LayerScene, views: list[tuple[Any, torch.Tensor]],
+def cache_rays(scene: LayerScene, views: list[tuple[Any, torch.Tensor]], spp: int = 1,
+               max_pixels: int | None = None, seed: int = 0,
                progress: bool = False) -> RayCache:
-    """Every pixel ray of ``views`` ((cameras, images [N, H, W, 3]) sets) that hits a layer."""
+    """The pixels of ``views`` ((cameras, images [N, H, W, 3]) sets) one of whose ``spp`` rays
+    (the sub-pixel grid of `Cameras.pixel_rays`, as ``shells-render --spp``) hits a layer; a
+    random share of them when there are more than ``max_pixels`` pixels in all."""
+    total = sum(len(c) * c.height * c.width for c, _ in views)
+    keep = 1.0 if not max_pixels or total <= max_pixels else max_pixels / total
+    gen = torch.Generator().manual_seed(seed)
     ds, targets, hits = [], [], [[] for _ in scene.scenes]
     pairs = [(cameras, images, i) for cameras, images in views for i in range(len(cameras))]
     for cameras, images, i in tqdm(pairs, desc="cast training rays", disable=not progress):
-        o, d = cameras.pixel_rays(i)
+        o, d = cameras.pixel_rays(i, spp)
         hs = scene.cast(o, d)
-        any_hit = torch.zeros(len(d), dtype=torch.bool)
+        any_hit = torch.zeros(len(d) // spp, dtype=torch.bool)
         for h in hs:
-            any_hit |= h.prim >= 0
-        idx = torch.nonzero(any_hit).squeeze(1)
-        ds.append(d[idx].float())
-        targets.append(images[i].reshape(-1, 3)[idx])
+            any_hit |= (h.prim >= 0).reshape(-1, spp).any(1)
+        if keep < 1.0:
+            any_hit &= torch.rand(len(any_hit), generator=gen) < keep
+        px = torch.nonzero(any_hit).squeeze(1)
+        rays = (px[:, None] * spp + torch.arange(spp)).reshape(-1)
+        ds.append(d[rays].float())
+        targets.append(images[i].reshape(-1, 3)[px])
         for k, h in enumerate(hs):
-            hits[k].append(LayerHits(h.prim[idx].to(torch.int32), h.uv[idx], h.t[idx]))
+            hits[k].append(LayerHits(h.prim[rays].to(torch.int32), h.uv[rays], h.t[rays]))
     cat = [LayerHits(torch.cat([x.prim for x in hk]).long(), torch.cat([x.uv for x in hk]),
                      torch.cat([x.t for x in hk])) for hk in hits]
-    return RayCache(torch.cat(ds), torch.cat(targets), cat)
+    return RayCache(torch.cat(ds), torch.cat(targets), cat, spp)
 
 
 def _logit(x: torch.Tensor) -> torch.Tensor:
@@ -167,10 +198,12 @@ def fit_layers(meshes: list[tuple[np.ndarray, np.ndarray]], start: list[LayerAtt
     PSNR of the batches, on the rays that hit a layer)."""
     t0 = time.perf_counter()
     scene = LayerScene(meshes, variant)
-    cache = cache_rays(scene, views, progress)
-    R = len(cache.d)
+    cache = cache_rays(scene, views, cfg.spp, cfg.max_pixels, cfg.seed, progress)
+    R = len(cache.target)
     if R == 0:
         raise InputError("no training ray hits the layers: nothing to bake (is the field empty?)")
+    edges = [torch.from_numpy(mesh_edges(F)) for _, F in meshes]
+    n_edges = sum(len(e) for e in edges)
     params = []
     for a in start:
         params += [_logit(a.rgba).requires_grad_(), a.sh.clone().requires_grad_()]
@@ -181,21 +214,32 @@ def fit_layers(meshes: list[tuple[np.ndarray, np.ndarray]], start: list[LayerAtt
     psnrs = []
     bar = tqdm(range(steps), desc="fit layers", disable=not progress)
     for _ in bar:
-        idx = torch.randint(0, R, (min(cfg.rays, R),), generator=gen)
+        idx = torch.randint(0, R, (max(1, min(cfg.rays // cfg.spp, R)),), generator=gen)
+        d, hits = cache.batch(idx)
         attrs = [LayerAttributes(torch.sigmoid(params[2 * k]), params[2 * k + 1])
                  for k in range(len(start))]
-        colour, _ = shade(scene.faces, attrs, [h.take(idx) for h in cache.hits], cache.d[idx],
-                          bg)
+        colour, _ = shade(scene.faces, attrs, hits, d, bg)
+        colour = colour.reshape(-1, cfg.spp, 3).mean(1)  # the pixel: mean of its rays
         loss = torch.mean((colour - cache.target[idx]) ** 2)
+        data_loss = loss.detach()
+        if cfg.smooth > 0:  # neighbouring vertices alike: the noise of vertices seen by few rays
+            share = min(1.0, cfg.smooth_edges / max(n_edges, 1))  # a random share per step
+            for e, a in zip(edges, attrs):
+                k = int(round(share * len(e)))
+                if k:
+                    e = e[torch.randint(0, len(e), (k,), generator=gen)] if share < 1 else e
+                    dif = torch.cat([a.rgba[e[:, 0]] - a.rgba[e[:, 1]],
+                                     (a.sh[e[:, 0]] - a.sh[e[:, 1]]).flatten(1)], 1)
+                    loss = loss + cfg.smooth * (dif ** 2).sum() / (share * n_edges * dif.shape[1])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         sched.step()
-        psnrs.append(-10.0 * math.log10(max(loss.item(), 1e-12)))
+        psnrs.append(-10.0 * math.log10(max(data_loss.item(), 1e-12)))
         bar.set_postfix(psnr=f"{psnrs[-1]:.2f}", refresh=False)
     out = [LayerAttributes(torch.sigmoid(params[2 * k]).detach(), params[2 * k + 1].detach())
            for k in range(len(start))]
-    return out, {"steps": steps, "rays": R, "seconds": time.perf_counter() - t0,
+    return out, {"steps": steps, "pixels": R, "seconds": time.perf_counter() - t0,
                  "train_psnr_last": float(np.mean(psnrs[-10:])) if psnrs else None}
 
 
@@ -247,7 +291,8 @@ def bake(field: Any, aabb: np.ndarray, outer: tuple[np.ndarray, np.ndarray],
         background=tuple(float(x) for x in background), up=tuple(float(x) for x in up))
     asset.meta = {"fit": {
         "levels": levels, "resolution": res, "triangles_before_pruning": tri_before,
-        "triangles": sum(len(F) for _, F in meshes), "training_rays_hitting": rec1["rays"],
+        "triangles": sum(len(F) for _, F in meshes), "training_pixels": rec1["pixels"],
+        "spp": cfg.spp,
         "steps": rec1["steps"] + rec2["steps"], "rays_per_step": cfg.rays,
         "train_psnr_last": rec2["train_psnr_last"], "seconds_layers": t_layers,
         "seconds_fit": rec1["seconds"] + rec2["seconds"],

@@ -74,7 +74,10 @@ const [asset, cams] = await Promise.all(
   ['asset.json', 'cameras.json'].map((f) => fetch(f).then((r) => r.json())));
 const gltf = await new GLTFLoader().loadAsync(asset.glb);
 
-const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, alpha: false,
+// multisampling as the asset was fitted (shells-render --spp 4 averages a 2x2 grid of rays);
+// msaa=0 draws one sample a pixel, as shells-render --spp 1
+const msaa = (asset.fit?.spp ?? 1) > 1 && params.get('msaa') !== '0';
+const renderer = new THREE.WebGLRenderer({ canvas, antialias: msaa, alpha: false,
                                            preserveDrawingBuffer: true, depth: true });
 renderer.outputColorSpace = THREE.LinearSRGBColorSpace;
 renderer.setPixelRatio(1);
