@@ -426,7 +426,7 @@ def baked_bench(args: argparse.Namespace) -> dict[str, Any]:
         # band at the run's spp; baked at the asset's (as fitted, as the browser's MSAA) and at 1
         for mode, spp in (("band", None), ("baked", None), ("baked", 1)):
             for size in [None, *args.sizes]:
-                m = render_run(run, mode=mode, width=size, height=size, out=Path(tmp) / "r",
+                m = render_run(run.root, mode=mode, width=size, height=size, out=Path(tmp) / "r",
                                progress=args.progress, spp=spp)
                 key = f"{mode} spp {m['render_config']['spp']} {m['width']}x{m['height']}"
                 out["python"][key] = {k: m.get(k) for k in (

@@ -194,6 +194,8 @@ def export_web(run_dir: str | Path, out: str | Path, three: str | Path | None = 
             "views": [{"c2w_opencv": cams.c2w[i].tolist(), "fx": float(cams.fx[i]),
                        "fy": float(cams.fy[i]), "cx": float(cams.cx[i]),
                        "cy": float(cams.cy[i])} for i in range(len(cams))]})
+        if (out / "lib").is_dir():  # an earlier export's: a folder is not replaced by a move
+            shutil.rmtree(out / "lib")
         commit_files(tmp, out, last="index.html")
     return {"out": str(out), "files": sorted(str(p.relative_to(out)) for p in out.rglob("*")
                                              if p.is_file())}

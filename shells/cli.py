@@ -621,7 +621,7 @@ def _bake_args(p: argparse.ArgumentParser) -> None:
                         "until the layers fit")
     p.add_argument("--levels", type=float, nargs="+", default=None, metavar="U",
                    help="level sets u = f / s of the layers, 0 (the surface) included "
-                        "(default -2 0 2)")
+                        "(default -2 -1 0 1 2 3 4)")
     p.add_argument("--resolution", type=int, default=None,
                    help="grid of the layer meshes (default: 1.25 cells across a training "
                         "pixel's footprint at the scene centre, at most the shells' resolution)")

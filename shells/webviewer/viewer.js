@@ -48,6 +48,22 @@ void main() {
   gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
 }`;
 
+// the depth pass: the same position arithmetic (invariant), no attributes to interpolate
+const DEPTH_VERTEX = /* glsl */ `
+precision highp float;
+uniform mat4 modelViewMatrix;
+uniform mat4 projectionMatrix;
+in vec3 position;
+invariant gl_Position;
+void main() {
+  gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
+}`;
+
+const DEPTH_FRAGMENT = /* glsl */ `
+precision highp float;
+out vec4 outColor;
+void main() { outColor = vec4(0.0); }`;
+
 const FRAGMENT = /* glsl */ `
 precision highp float;
 in vec4 vBase;
@@ -106,8 +122,9 @@ layers.forEach((mesh, k) => {
   const shared = { eye: uniforms.eye, shScale: { value: mesh.userData.sh_scale } };
   const base = { glslVersion: THREE.GLSL3, vertexShader: VERTEX, fragmentShader: FRAGMENT,
                  uniforms: shared, side: THREE.DoubleSide, transparent: false };
-  const depth = new THREE.RawShaderMaterial({ ...base, colorWrite: false, depthWrite: true,
-                                              depthFunc: THREE.LessEqualDepth });
+  const depth = new THREE.RawShaderMaterial({ ...base, vertexShader: DEPTH_VERTEX,
+                                              fragmentShader: DEPTH_FRAGMENT, colorWrite: false,
+                                              depthWrite: true, depthFunc: THREE.LessEqualDepth });
   const blend = { depthWrite: false, depthFunc: THREE.EqualDepth, blending: THREE.CustomBlending,
                   blendEquation: THREE.AddEquation };
   const colour = new THREE.RawShaderMaterial({ ...base, ...blend,
