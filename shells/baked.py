@@ -38,7 +38,7 @@ THREE_FILES = ("build/three.module.js", "build/three.core.js",
 def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
              resolution: int | None = None, size_mb: float | None = None,
              steps: int | None = None, teacher_views: int | None = None,
-             progress: bool = False) -> dict[str, Any]:
+             max_triangles: int | None = None, progress: bool = False) -> dict[str, Any]:
     """Bake RUN's stage-2 field into RUN/baked (module docstring); returns asset.json's record."""
     from shells.data.camera_paths import scene_frame
     from shells.data.datasets import load_dataset
@@ -54,9 +54,11 @@ def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
     outer, inner = shell_meshes(run)
     cfg = BakeConfig()
     for name, value in (("levels", levels), ("size_mb", size_mb), ("steps", steps),
-                        ("teacher_views", teacher_views)):
+                        ("teacher_views", teacher_views), ("max_triangles", max_triangles)):
         if value is not None:
             setattr(cfg, name, tuple(value) if name == "levels" else value)
+    if max_triangles is not None and max_triangles < 100:
+        raise InputError(f"--max-triangles {max_triangles}: must be at least 100")
     if teacher_views is not None and teacher_views < 0:
         raise InputError(f"--teacher-views {teacher_views}: must be >= 0")
     if cfg.size_mb <= 0 or cfg.steps < 1 or not cfg.levels or 0.0 not in cfg.levels:
@@ -88,6 +90,14 @@ def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
         record = json.loads((tmp / "asset.json").read_text())
         commit_files(tmp, run.baked, last="asset.json")
     return record
+
+
+def bake_summary(record: dict[str, Any]) -> str:
+    """One line of asset.json's record: layers, triangles, size, fit PSNR, time."""
+    fit = record["fit"]
+    return (f"baked {len(record['layers'])} layers, {fit['triangles']} triangles, "
+            f"{record['size_bytes'] / 1e6:.1f} MB, training PSNR {fit['train_psnr_last']:.2f} dB, "
+            f"{fit['seconds']:.0f} s")
 
 
 def pixel_resolution(cams: Any, aabb: np.ndarray, cap: int, cells_per_pixel: float) -> int:

@@ -630,19 +630,20 @@ def _bake_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--teacher-views", type=int, default=None, metavar="N",
                    help="band renders of the stage-2 field from N turned training cameras, "
                         "fitted beside the photos (default: 4 per training view; 0: photos only)")
+    p.add_argument("--max-triangles", type=int, default=None, metavar="N",
+                   help="simplify the layers to about N triangles in all (quadric decimation): "
+                        "faster in a browser, coarser colours (default: no limit)")
 
 
 def _bake(args: argparse.Namespace) -> int:
-    from shells.baked import bake_run
+    from shells.baked import bake_run, bake_summary
 
     with _locked_run(args.run, "shells-bake"):
         rec = bake_run(args.run, levels=args.levels, resolution=args.resolution,
                        size_mb=args.size_mb, steps=args.steps,
-                       teacher_views=args.teacher_views, progress=True)
-    fit = rec["fit"]
-    print(f"baked {len(rec['layers'])} layers, {fit['triangles']} triangles, "
-          f"{rec['size_bytes'] / 1e6:.1f} MB, training PSNR {fit['train_psnr_last']:.2f} dB, "
-          f"{fit['seconds']:.0f} s -> {args.run}/baked/layers.glb")
+                       teacher_views=args.teacher_views, max_triangles=args.max_triangles,
+                       progress=True)
+    print(f"{bake_summary(rec)} -> {args.run}/baked/layers.glb")
     return 0
 
 

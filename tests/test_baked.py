@@ -298,3 +298,14 @@ def test_the_drjit_renderer_matches_the_torch_reference():
     assert torch.equal(torch.from_numpy(np.asarray(drawn)).long(), ref_drawn.long())
     assert (ref_drawn >= 2).float().mean() > 0.5  # most rays cross several layers
     assert torch.allclose(fast, ref, atol=1e-5)
+
+
+def test_max_triangles_simplifies_the_layers(baked_run, tmp_path):
+    from shells.cli import bake_main
+
+    run = tmp_path / "run"
+    shutil.copytree(baked_run, run)
+    full = json.loads((run / "baked" / "asset.json").read_text())["fit"]["triangles"]
+    assert bake_main([str(run), "--steps", "2", "--max-triangles", str(full // 3)]) == 0
+    fit = json.loads((run / "baked" / "asset.json").read_text())["fit"]
+    assert 0 < fit["triangles"] <= 1.05 * full // 3

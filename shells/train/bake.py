@@ -54,14 +54,17 @@ class BakeConfig:
     # added to the photos (None: teacher_per_view per training view; 0: none): they hold the
     # vertices that the photos alone leave free
     teacher_per_view: int = 4
+    max_triangles: int | None = None  # simplify the layers to about this many (a browser's
+    # software GL draws about a million triangles a second); None: as marching cubes made them
     seed: int = 0
 
 
 def layer_meshes(field: Any, aabb: np.ndarray, resolution: int, levels: tuple[float, ...],
                  outer: tuple[np.ndarray, np.ndarray], inner: tuple[np.ndarray, np.ndarray] | None,
-                 band: float, progress: bool = False,
+                 band: float, max_triangles: int | None = None, progress: bool = False,
                  ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per level (sorted, innermost first): V [n, 3], F [m, 3], s at the vertices [n]."""
+    """Per level (sorted, innermost first): V [n, 3], F [m, 3], s at the vertices [n]; with
+    ``max_triangles``, the layers simplified together to about that many triangles."""
     from scipy.ndimage import map_coordinates
 
     from shells.levelset.containment import inside
@@ -89,6 +92,16 @@ def layer_meshes(field: Any, aabb: np.ndarray, resolution: int, levels: tuple[fl
                 keep &= ~inside(*inner, centre)
             V, F, sv = _subset(V, F[keep], sv)
         out.append((V, F, sv))
+    total = sum(len(F) for _, F, _ in out)
+    if max_triangles and total > max_triangles:  # quadric decimation, each layer its share
+        import fast_simplification
+
+        for k, (V, F, _) in enumerate(out):
+            if len(F) >= 8:
+                V, F = fast_simplification.simplify(V, F, 1.0 - max_triangles / total)
+                V = np.asarray(V, np.float32)
+                out[k] = (V, np.asarray(F, np.int64),
+                          map_coordinates(s, ((V - lo) / spacing).T, order=1, mode="nearest"))
     return out
 
 
@@ -268,7 +281,8 @@ def bake(field: Any, aabb: np.ndarray, outer: tuple[np.ndarray, np.ndarray],
     budget = cfg.size_mb * 1e6
     res = int(resolution)
     for _ in range(4):  # coarser grids until the layers fit the budget (area ~ resolution^2)
-        layers = layer_meshes(field, aabb, res, cfg.levels, outer, inner, band, progress)
+        layers = layer_meshes(field, aabb, res, cfg.levels, outer, inner, band,
+                              cfg.max_triangles, progress)
         size = mesh_bytes(layers)
         if size <= budget:
             break
