@@ -115,12 +115,12 @@ def curve(args: argparse.Namespace) -> int:
 
 def baked(args: argparse.Namespace) -> int:
     """Screenshots of RUN/baked in the exported three.js viewer, in headless Chromium with a
-    software GL: the colour view with its HUD (fps, layers, triangles, size) beside the layers
-    per pixel view, from the viewer's start camera (test view 0's position)."""
+    software GL: the colour view with its HUD (the fps of one warm frame, layers, triangles,
+    size) beside the layers per pixel view, from the viewer's start camera (test view 0's
+    position)."""
     import base64
     import tempfile
     import threading
-    import time
 
     from shells.baked import export_web, static_server
     from shells.browser import Browser
@@ -129,14 +129,17 @@ def baked(args: argparse.Namespace) -> int:
         export_web(args.run, Path(tmp) / "web")
         srv = static_server(Path(tmp) / "web", "127.0.0.1", 0)
         threading.Thread(target=srv.serve_forever, daemon=True).start()
-        url = f"http://127.0.0.1:{srv.server_address[1]}/?width={args.size}&height={args.size}"
+        url = (f"http://127.0.0.1:{srv.server_address[1]}/?paused=1&width={args.size}"
+               f"&height={args.size}")
         shots = []
         try:
             with Browser(gl=args.gl, size=(args.size, args.size)) as b:
+                b.call("Emulation.setDeviceMetricsOverride", width=args.size, height=args.size,
+                       deviceScaleFactor=1, mobile=False)
                 for show in ("colour", "layers"):
                     b.open(f"{url}&show={show}", ready="window.shells && window.shells.ready",
                            timeout=300)
-                    time.sleep(3.0)  # the fps readout settles
+                    b.evaluate("window.shells.frame(), window.shells.frame()", timeout=120)
                     shot = b.call("Page.captureScreenshot", timeout=120)
                     shots.append(iio.imread(base64.b64decode(shot["data"]))[..., :3])
         finally:
