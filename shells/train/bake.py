@@ -1,8 +1,8 @@
 """Baking: nested layer meshes inside the band, their appearance fitted to the training photos.
 
 1. Layers (`layer_meshes`): level sets u = f / s = c of the stage-2 field, c in ``levels``
-   (default -2, -1, ..., 4): the kernel-normalised SDF, so the layers spread where the kernel is wide
-   (fuzz) and close up where it is sharp. The surface layer (c = 0) is kept whole; a side
+   (default -2, -1, ..., 4): the kernel-normalised SDF, so the layers spread where the kernel
+   is wide (fuzz) and close up where it is sharp. The surface layer (c = 0) is kept whole; a side
    layer only inside the band (inside M+, outside M-) and only where its distance to the
    surface, |c| s, is at least one grid step (elsewhere it would repeat the surface layer).
 2. Start values distilled from the field: base colour = the radiance seen along -normal,
@@ -35,12 +35,11 @@ BYTES_PER_TRIANGLE = 12
 
 @dataclass
 class BakeConfig:
-    # u = f / s of the layers (0: the surface), more outside where fuzz spreads: core-fuzz's
-    # test PSNR was 27.7 dB with -2, 0, 2; 29.2 with -1..3; 30.1 with -2..4 (as with -2..6)
+    # u = f / s of the layers (0: the surface), more outside, where fuzz spreads; fewer lost
+    # core-fuzz's coat, more were not kept (outside M+): BENCHMARKS.md, "Baked shells"
     levels: tuple[float, ...] = (-2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0)
-    resolution: int | None = None  # grid of the layer meshes; None: `cells_per_pixel`
-    cells_per_pixel: float = 1.25  # grid cells across a training pixel's footprint (at most
-    # the shells' grid): on lego 1/4, 256 cells (1.24 a pixel) beat 207 (one a pixel)
+    cells_per_pixel: float = 1.25  # layer-grid cells across a training pixel's footprint (at
+    # most the shells' grid): a little finer than the pixels, the smoothness term holds them
     size_mb: float = 60.0  # budget of the GLB; the grid is made coarser until the layers fit
     steps: int = 600  # Adam steps in all (three quarters before the pruning, the rest after)
     rays: int = 1 << 17  # training rays per step (pixels x spp)
