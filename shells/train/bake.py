@@ -64,7 +64,6 @@ def layer_meshes(field: Any, aabb: np.ndarray, resolution: int, levels: tuple[fl
                  ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Per level (sorted, innermost first): V [n, 3], F [m, 3], s at the vertices [n]; with
     ``max_triangles``, the layers simplified together to about that many triangles."""
-    from scipy.ndimage import map_coordinates
 
     from shells.levelset.containment import inside
     from shells.levelset.grid import sample_grid_banded
@@ -81,7 +80,7 @@ def layer_meshes(field: Any, aabb: np.ndarray, resolution: int, levels: tuple[fl
     for c in sorted(levels):
         mesh = clean_mesh(marching_cubes(f - np.float32(c) * s, aabb))
         V, F = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int64)
-        sv = map_coordinates(s, ((V - lo) / spacing).T, order=1, mode="nearest")
+        sv = f_at(s, lo, spacing, V)
         if c != 0 and len(F):
             centre = V[F].mean(1)
             keep = (np.abs(c) * sv[F].min(1) >= h) & (np.abs(f_at(f, lo, spacing, centre))
@@ -99,12 +98,12 @@ def layer_meshes(field: Any, aabb: np.ndarray, resolution: int, levels: tuple[fl
             if len(F) >= 8:
                 V, F = fast_simplification.simplify(V, F, 1.0 - max_triangles / total)
                 V = np.asarray(V, np.float32)
-                out[k] = (V, np.asarray(F, np.int64),
-                          map_coordinates(s, ((V - lo) / spacing).T, order=1, mode="nearest"))
+                out[k] = (V, np.asarray(F, np.int64), f_at(s, lo, spacing, V))
     return out
 
 
 def f_at(f: np.ndarray, lo: np.ndarray, spacing: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The grid ``f`` (origin ``lo``, cell ``spacing``) trilinearly at points x [n, 3]."""
     from scipy.ndimage import map_coordinates
 
     return map_coordinates(f, ((x - lo) / spacing).T, order=1, mode="nearest")
@@ -206,13 +205,16 @@ def _logit(x: torch.Tensor) -> torch.Tensor:
 def fit_layers(meshes: list[tuple[np.ndarray, np.ndarray]], start: list[LayerAttributes],
                views: list[tuple[Any, torch.Tensor]], background: tuple[float, float, float],
                steps: int, cfg: BakeConfig, variant: str | None = None,
-               progress: bool = False) -> tuple[list[LayerAttributes], dict[str, Any]]:
+               progress: bool = False, cache: RayCache | None = None,
+               ) -> tuple[list[LayerAttributes], dict[str, Any]]:
     """Fit the attributes of fixed layer meshes to the images of ``views`` ((cameras, images)
     sets: the photos, the teacher's views); returns them and a record (steps, seconds, final
-    PSNR of the batches, on the rays that hit a layer)."""
+    PSNR of the batches, on the rays that hit a layer; the ray cache, which a later fit on the
+    same meshes may pass back as ``cache``)."""
     t0 = time.perf_counter()
     scene = LayerScene(meshes, variant)
-    cache = cache_rays(scene, views, cfg.spp, cfg.max_pixels, cfg.seed, progress)
+    if cache is None:
+        cache = cache_rays(scene, views, cfg.spp, cfg.max_pixels, cfg.seed, progress)
     R = len(cache.target)
     if R == 0:
         raise InputError("no training ray hits the layers: nothing to bake (is the field empty?)")
@@ -254,7 +256,8 @@ def fit_layers(meshes: list[tuple[np.ndarray, np.ndarray]], start: list[LayerAtt
     out = [LayerAttributes(torch.sigmoid(params[2 * k]).detach(), params[2 * k + 1].detach())
            for k in range(len(start))]
     return out, {"steps": steps, "pixels": R, "seconds": time.perf_counter() - t0,
-                 "train_psnr_last": float(np.mean(psnrs[-10:])) if psnrs else None}
+                 "train_psnr_last": float(np.mean(psnrs[-10:])) if psnrs else None,
+                 "cache": cache}
 
 
 def prune(meshes: list[tuple[np.ndarray, np.ndarray]], attrs: list[LayerAttributes],
@@ -299,8 +302,9 @@ def bake(field: Any, aabb: np.ndarray, outer: tuple[np.ndarray, np.ndarray],
     attrs, rec1 = fit_layers(meshes, start, views, background, first, cfg, variant, progress)
     tri_before = sum(len(F) for _, F in meshes)
     meshes, attrs = prune(meshes, attrs, cfg.prune_alpha)
+    same = sum(len(F) for _, F in meshes) == tri_before  # nothing pruned: the same hits
     attrs, rec2 = fit_layers(meshes, attrs, views, background, max(1, cfg.steps - first), cfg,
-                             variant, progress)
+                             variant, progress, cache=rec1["cache"] if same else None)
     asset = BakedAsset(
         layers=[quantise(c, V, F, a.rgba, a.sh) for (V, F), a, c in zip(meshes, attrs, levels)],
         background=tuple(float(x) for x in background), up=tuple(float(x) for x in up))
