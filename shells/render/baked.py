@@ -78,10 +78,6 @@ class BakedAsset:
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)  # the capture's up axis (world)
     meta: dict[str, Any] = dc_field(default_factory=dict)  # the fit's record
 
-    @property
-    def size_bytes(self) -> int:
-        return sum(len(x.V) * (12 + 4 + 3 * 4) + len(x.F) * 12 for x in self.layers)
-
 
 def quantise(level: float, V: np.ndarray, F: np.ndarray, rgba: torch.Tensor,
              sh: torch.Tensor) -> Layer:

@@ -112,6 +112,7 @@ const uniforms = { eye: { value: new THREE.Vector3() } };
 const scene = new THREE.Scene();
 const colourMaterials = [];
 const countMaterials = [];
+const colourPasses = [];  // the second mesh of each layer: colour or count material
 const layers = [];
 root.traverse((o) => { if (o.isMesh) layers.push(o); });
 layers.sort((a, b) => a.userData.layer - b.userData.layer);  // innermost first
@@ -142,7 +143,7 @@ layers.forEach((mesh, k) => {
     pass.renderOrder = order;
     pass.frustumCulled = false;
     scene.add(pass);
-    if (material === colour) pass.userData.colourPass = true;
+    if (material === colour) colourPasses.push(pass);
   }
 });
 scene.updateMatrixWorld(true);
@@ -231,12 +232,8 @@ function render() {
   camera.updateMatrixWorld(true);
   uniforms.eye.value.setFromMatrixPosition(camera.matrixWorld).applyMatrix4(fromGltf);
   const counting = show === 'layers';
-  scene.traverse((o) => {
-    if (o.userData.colourPass) {
-      const k = colourMaterials.indexOf(o.material) >= 0 ? colourMaterials.indexOf(o.material)
-        : countMaterials.indexOf(o.material);
-      o.material = counting ? countMaterials[k] : colourMaterials[k];
-    }
+  colourPasses.forEach((pass, k) => {
+    pass.material = counting ? countMaterials[k] : colourMaterials[k];
   });
   if (counting) {
     renderer.setRenderTarget(countTarget);
