@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -16,61 +14,28 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from shells.browser import Browser, chromium, free_port
 from tests.conftest import tiny_config, trained_run
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+CHROMIUM = chromium()
 
 
 def screenshot(url: str, path: Path, ready, timeout: float = 90.0) -> None:
     """Open ``url`` in headless chromium and save a screenshot once ``ready()`` (real time: the
     page's websocket traffic must arrive, which --virtual-time-budget does not wait for)."""
     import base64
-    import urllib.request
 
-    from websockets.sync.client import connect
-
-    port = _free_port()
-    browser = subprocess.Popen([CHROMIUM, "--headless", "--no-sandbox", "--use-gl=swiftshader",
-                                "--enable-unsafe-swiftshader", "--window-size=960,720",
-                                f"--remote-debugging-port={port}", "about:blank"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
+    with Browser(gl="swiftshader", offline=False, size=(960, 720)) as b:
+        # a fixed 960 x 720 page: the object sits clear of the browser's corner notice
+        b.call("Emulation.setDeviceMetricsOverride", width=960, height=720, deviceScaleFactor=1,
+               mobile=False)
+        b.call("Page.navigate", url=url)
         t0 = time.time()
-        while True:
-            try:
-                targets = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json",
-                                                            timeout=2).read())
-                page = next(t for t in targets if t.get("type") == "page")
-                break
-            except (OSError, StopIteration):
-                assert time.time() - t0 < 30, "chromium did not start"
-                time.sleep(0.2)
-        with connect(page["webSocketDebuggerUrl"], max_size=None) as ws:
-            # a fixed 960 x 720 page: the object sits clear of the browser's corner notice
-            ws.send(json.dumps({"id": 0, "method": "Emulation.setDeviceMetricsOverride",
-                                "params": {"width": 960, "height": 720, "deviceScaleFactor": 1,
-                                           "mobile": False}}))
-            ws.send(json.dumps({"id": 1, "method": "Page.navigate", "params": {"url": url}}))
-            t0 = time.time()
-            while not ready():
-                assert time.time() - t0 < timeout, "the viewer never rendered the page's camera"
-                time.sleep(0.2)
-            time.sleep(1.0)  # the last background image reaches the page
-            ws.send(json.dumps({"id": 2, "method": "Page.captureScreenshot"}))
-            while True:
-                msg = json.loads(ws.recv(timeout=30))
-                if msg.get("id") == 2:
-                    path.write_bytes(base64.b64decode(msg["result"]["data"]))
-                    break
-    finally:
-        browser.terminate()
-        browser.wait(timeout=30)
+        while not ready():
+            assert time.time() - t0 < timeout, "the viewer never rendered the page's camera"
+            time.sleep(0.2)
+        time.sleep(1.0)  # the last background image reaches the page
+        path.write_bytes(base64.b64decode(b.call("Page.captureScreenshot")["data"]))
 
 
 def foreground(img: np.ndarray) -> np.ndarray:  # [H, W, 3] uint8 -> [H, W] bool
@@ -92,7 +57,7 @@ def test_quaternion_round_trip():
 def test_viewer_in_a_headless_browser_shows_the_object(tmp_path):
     assert CHROMIUM is not None, "CI is set but chromium is missing: apt install chromium"
     run = trained_run(tmp_path, tiny_config())
-    port, dump = _free_port(), tmp_path / "dump"
+    port, dump = free_port(), tmp_path / "dump"
     script = Path(sys.executable).parent / "shells-view"
     server = subprocess.Popen([str(script), str(run), "--host", "127.0.0.1", "--port",
                                str(port), "--resolution", "160", "--dump", str(dump)],
