@@ -133,6 +133,12 @@ UNBOUNDED_BAND = {"dp_max": 32, "w_s": 0.04, "delta_s": 0.03, "n_max": 64}
 # ... and stage 2 in 4 ray shards a step: at ~50 samples a ray one batch's activations
 # outgrow the caches
 UNBOUNDED_SHARDS = 4
+# A bounded field whose finest level reaches SHARP_RESOLUTION (full-size NeRF-synthetic images)
+# learns kernels under a 256^3 cell, and its fine parts fall between grid points: its shells
+# are extracted at 512^3, keep every mesh piece (small pieces are real studs and rods) and
+# reach further out and less far in
+SHARP_RESOLUTION = 2048
+SHARP_SHELLS = {"resolution": 512, "min_component_fraction": 0.0, "beta_d": 1.2, "beta_e": 0.3}
 START_RADII = 2.0  # the unbounded object preset's rays start this many radii from the centre
 CAMERA_SHARE = 0.8  # ... or at this share of the nearest training camera's distance, if less
 
@@ -175,7 +181,10 @@ def _object_for(data_dir: str | Path, downscale: int, sim: Similarity | None) ->
     centre = 0.5 * (box[0] + box[1])
     distance = float((cams.c2w[:, :3, 3].double() - centre).norm(dim=-1).median())
     focal = float(cams.fx.double().median())
-    return object_config(float((box[1] - box[0]).max()), focal, distance, pixels)
+    cfg = object_config(float((box[1] - box[0]).max()), focal, distance, pixels)
+    if cfg.field.max_resolution >= SHARP_RESOLUTION:
+        cfg.update({"shell": SHARP_SHELLS}, "object preset, sharp field")
+    return cfg
 
 
 def _toy_for(sim: Similarity | None) -> Config:
