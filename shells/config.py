@@ -171,6 +171,11 @@ class ShellConfig:
     beta_e: float = 0.3  # erosion speed per unit kernel size s: erodes 1.5 s (not in the paper)
     v_max: float = 0.035  # cap on both speeds, world units / time: 5 v_max = 0.175 > zeta,
     # and v_max dt < cfl h up to resolution 256 (one sub-step per step)
+    support_k_outer: float = 0.0  # density support (not in the paper): M+ also encloses every
+    # grid point with f < h + k s (h: half a cell's diagonal), the occupancy grid's rule
+    # (`shells.fields.neus.may_have_density`) on the outside; 0 = the level-set shells only
+    support_k_inner: float = 0.0  # and M- lies only where f < -(h + k s): a ray ends on M- only
+    # past the layer that holds all but about e^-k of the surface's opacity; 0 = off
     min_component_fraction: float = 0.01  # drop mesh pieces smaller than this share of faces
     chunk: int = 262144  # grid points per field evaluation
     memory_mb: int = 2048  # memory budget of the level-set evolution, MiB: a band of more voxels
@@ -412,7 +417,8 @@ _RULES = [_rule(k, *r) for k, r in [
                                             "normal_delay", "normal_ramp")],
     ("shell.resolution", _at_least(8)),
     *[(f"shell.{k}", _at_least(0)) for k in ("steps", "dilate_curvature", "erode_curvature",
-                                            "beta_d", "sigma_min", "beta_e")],
+                                            "beta_d", "sigma_min", "beta_e",
+                                            "support_k_outer", "support_k_inner")],
     *[(f"shell.{k}", _positive()) for k in ("dt", "cfl", "dilate_zeta", "erode_zeta",
                                            "v_max")],
     ("shell.min_component_fraction", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),

@@ -10,6 +10,7 @@ import torch
 
 from shells.config import ShellConfig
 from shells.errors import InputError
+from shells.fields.neus import may_have_density
 from shells.levelset.evolve import (dilation_velocity, erosion_velocity, evolve, falloff,
                                     shell_sdfs, substeps)
 from shells.levelset.grid import sample_grid
@@ -186,6 +187,42 @@ def test_noisy_field_stays_bounded_and_contained():
     assert np.abs(minus - f0).max() <= 2 * cfg.erode_zeta
     outside = np.abs(f0) >= cfg.dilate_zeta
     assert (plus[outside] == f0[outside]).all()
+
+
+def test_support_terms_move_the_shells_to_h_plus_k_s():
+    # Hand-worked: with the fronts held still (beta 0), the outer shell of an exact sphere SDF is
+    # the level set f = h + k s and the inner one f = -(h + k s), h half a cell's diagonal; f is
+    # linear along the axis, so the linearly interpolated zero crossings are exact.
+    X, Y, Z, h = grid(41)
+    f0 = (np.sqrt(X**2 + Y**2 + Z**2) - 0.5).astype(np.float32)
+    s = np.full_like(f0, 0.01)
+    cfg = ShellConfig(beta_d=0.0, beta_e=0.0, support_k_outer=3.0, support_k_inner=2.0)
+    plus, minus = shell_sdfs(f0, s, (h,) * 3, cfg)
+    half_diagonal = 0.5 * math.sqrt(3) * h
+    assert zero_crossing_x(plus, h) == pytest.approx(0.5 + half_diagonal + 0.03, abs=1e-5)
+    assert zero_crossing_x(minus, h) == pytest.approx(0.5 - half_diagonal - 0.02, abs=1e-5)
+    assert (plus <= f0).all() and (minus >= f0).all()
+
+
+def test_support_terms_keep_a_flat_field_s_density_in_the_band():
+    # A sharp field whose f inside the solid falls at a fifth of the distance (|grad f| = 0.2):
+    # the level-set erosion moves M- a distance, which there is a fifth of the f it should be,
+    # and M- cuts into the layer where the surface still absorbs (|f| < h + k s, the occupancy
+    # grid's rule). With the support terms the band holds every such grid point.
+    X, Y, Z, h = grid(41)
+    r = np.sqrt(X**2 + Y**2 + Z**2) - 0.5
+    f0 = np.where(r > 0, r, 0.2 * r).astype(np.float32)
+    s = np.full_like(f0, 0.004)
+    half_diagonal = 0.5 * math.sqrt(3) * h
+    k = 3.0
+    density = may_have_density(torch.from_numpy(f0), torch.from_numpy(s), half_diagonal, k).numpy()
+
+    def holds(cfg):
+        plus, minus = shell_sdfs(f0, s, (h,) * 3, cfg)
+        return bool(((plus <= 0) & (minus >= 0))[density].all())
+
+    assert not holds(ShellConfig(beta_d=1.2, beta_e=0.3))  # the level-set shells alone
+    assert holds(ShellConfig(beta_d=1.2, beta_e=0.3, support_k_outer=k, support_k_inner=k))
 
 
 # ------------------------------------------------------------------------------------------

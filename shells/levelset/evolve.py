@@ -348,6 +348,14 @@ def shell_sdfs(f0: np.ndarray,  # [X, Y, Z] SDF, f > 0 outside
 
     The min / max make the containment exact on the grid: {f0 <= 0} is inside {SDF+ <= 0} and
     {SDF- <= 0} is inside {f0 <= 0}. ``progress``: a bar over each evolution's steps.
+
+    With the density-support terms (`ShellConfig.support_k_outer` / ``support_k_inner``, k > 0)
+    also SDF+ <= f0 - (h + k s) and SDF- >= f0 + h + k s, h half a cell's diagonal: the band then
+    holds every grid point the occupancy rule marks (`shells.fields.neus.may_have_density`,
+    |f| < h + k s). The level-set fronts move a distance, which a sharp field whose f is far
+    from a distance (|grad f| well below 1 inside a solid, a thin part whose f never reaches 0
+    on the grid) turns into too little change of f: a ray then ended on M- before the surface
+    had absorbed it, and density lay outside M+.
     """
     f0 = np.asarray(f0, dtype=np.float32)
     dil = evolve(f0, dilation_velocity(s, cfg), spacing, cfg.steps, cfg.dt, cfg.dilate_zeta,
@@ -356,4 +364,11 @@ def shell_sdfs(f0: np.ndarray,  # [X, Y, Z] SDF, f > 0 outside
     ero = evolve(f0, -erosion_velocity(s, cfg), spacing, cfg.steps, cfg.dt, cfg.erode_zeta,
                  cfg.erode_curvature, cfg.cfl, device, cfg.memory_mb,
                  "erode (M-)" if progress else None)
-    return np.minimum(f0, dil), np.maximum(f0, ero)
+    plus, minus = np.minimum(f0, dil), np.maximum(f0, ero)
+    h = 0.5 * float(np.linalg.norm(np.asarray(spacing, dtype=np.float64)))
+    s = np.asarray(s, dtype=np.float32)
+    if cfg.support_k_outer > 0:
+        plus = np.minimum(plus, f0 - (np.float32(h) + np.float32(cfg.support_k_outer) * s))
+    if cfg.support_k_inner > 0:
+        minus = np.maximum(minus, f0 + (np.float32(h) + np.float32(cfg.support_k_inner) * s))
+    return plus, minus
