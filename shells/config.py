@@ -207,6 +207,12 @@ class RenderConfig:
     occ_step: float = 0.0  # ray-marching step dt (world units); 0 = scene-box diagonal / 1024
     occ_chunk: int = 16  # samples per ray marched, evaluated and composited per round
     ert_eps: float = 1e-4  # early ray termination once transmittance drops below this
+    # band mode's early ray termination (shells/render/frame.py, `_composite_rounds`): the band
+    # samples are shaded front to back in rounds of band_chunk per live ray (doubling as rays
+    # drop out), and a ray stops once its transmittance is below band_ert_eps; 0 = every
+    # sample of Procedure 3 (the torch band renderer's rule, which stage 2 trains with)
+    band_ert_eps: float = 1e-4
+    band_chunk: int = 2
     # image-space adaptive refinement (shells-render --refine L, shells/render/refine.py): a
     # pixel is interpolated from its parents only if every test passes, else evaluated
     refine_levels: int = 0  # L: the coarse image takes every 2^L-th pixel; 0 = band mode as is
@@ -431,6 +437,8 @@ _RULES = [_rule(k, *r) for k, r in [
     *[(f"render.{k}", _at_least(0)) for k in ("w_s", "occ_jitter", "occ_step")],
     *[(f"render.{k}", _positive()) for k in ("delta_s", "occ_k")],
     ("render.ert_eps", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),
+    ("render.band_ert_eps", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),
+    ("render.band_chunk", _at_least(1)),
     ("render.refine_levels", ((lambda v: 0 <= v <= 6), "must be in 0..6")),
     ("render.refine_fuzzy_samples", _at_least(1)),
     *[(f"render.{k}", _fraction()) for k in ("refine_normal_cos", "refine_grazing",

@@ -26,6 +26,7 @@ be torch rays (converted without a copy) and the outputs convert to torch withou
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import drjit as dr
@@ -36,7 +37,8 @@ from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.render.occupancy import render_occupancy
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
-from shells.render.sampler import far_intervals, field_warp, place_packed, shell_intervals
+from shells.render.sampler import (PackedSamples, far_intervals, field_warp, place_packed,
+                                  shell_intervals)
 from shells.render.shading import WHITE, composite_packed, end_colour, shade_samples
 
 MODES = ("band", "full", "occupancy", "baked")
@@ -111,6 +113,8 @@ def render_intervals(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
     if samples.size == 0:
         out = (dr.zeros(mi.Color3f, n) + bg, samples.count)
         return out + ((dr.zeros(mi.Float, n), dr.zeros(mi.Vector3f, n)) if extras else ())
+    if fixed is None and not extras and cfg.band_ert_eps > 0:
+        return _composite_rounds(field, samples, o, d, cfg, bg)
     shaded = shade_samples(field, samples, o, d, normals=extras)
     alpha, rgb = shaded[:2]
     end = end_colour(rgb, samples, bg)  # the solid-end rule (background in full mode)
@@ -124,6 +128,64 @@ def render_intervals(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
         opacity = dr.select(samples.solid, 1.0, opacity)
     dr.eval(colour, samples.count, opacity, normal)
     return colour, samples.count, opacity, mi.Vector3f(normal)
+
+
+def _composite_rounds(field: Any, samples: PackedSamples, o: Any, d: Any,
+                      cfg: RenderConfig, bg: Any) -> tuple[Any, Any]:
+    """Band samples shaded front to back in rounds, with early ray termination: each round
+    evaluates the next ``cfg.band_chunk`` samples (more as rays drop out) of every live ray,
+    and a ray whose transmittance fell below ``cfg.band_ert_eps`` takes no more. The colour
+    differs from shading every sample by less than that transmittance (the light of the
+    samples not taken); the solid-end rule applies to the remaining transmittance as before,
+    with the last sample taken. Returns colour mi.Color3f [R] and the samples evaluated per
+    ray mi.UInt32 [R]."""
+    R = dr.width(samples.count)
+    trans = dr.ones(mi.Float, R)
+    acc = dr.zeros(mi.Color3f, R)
+    taken = dr.zeros(mi.UInt32, R)
+    last = dr.zeros(mi.Color3f, R)  # colour of the last sample taken
+    rid = dr.compress(samples.count > 0)  # live rays
+    first, total = (dr.gather(mi.UInt32, v, rid) for v in (samples.start, samples.count))
+    ro, rd = dr.gather(mi.Point3f, o, rid), dr.gather(mi.Vector3f, d, rid)
+    pos = dr.zeros(mi.UInt32, dr.width(rid))  # samples taken so far by each live ray
+    T = dr.ones(mi.Float, dr.width(rid))
+    C = dr.zeros(mi.Color3f, dr.width(rid))
+    L = dr.zeros(mi.Color3f, dr.width(rid))
+    dr.eval(first, total, ro, rd, pos, T, C, L)
+    black = mi.Color3f(0.0)
+    R0 = max(dr.width(rid), 1)
+    while dr.width(rid) > 0:
+        Ra = dr.width(rid)
+        K = int(cfg.band_chunk) * min(64, 2 ** int(math.floor(math.log2(R0 / Ra))))
+        m = dr.minimum(total - pos, K)  # samples of each live ray this round
+        slot = dr.arange(mi.UInt32, Ra * K)
+        idx = dr.compress((slot % K) < dr.repeat(m, K))  # [M] valid slots, ray-major
+        live = idx // K
+        src = dr.gather(mi.UInt32, first + pos, live) + idx % K  # packed sample index
+        sub = PackedSamples(t=dr.gather(mi.Float, samples.t, src),
+                            delta=dr.gather(mi.Float, samples.delta, src), ray=live,
+                            start=dr.prefix_sum(m), count=m, max_count=K)
+        alpha, rgb = shade_samples(field, sub, ro, rd)
+        c_round, o_round = composite_packed(alpha, rgb, sub.start, m, black)
+        C = dr.fma(c_round, T, C)
+        T = T * (1.0 - o_round)
+        L = dr.gather(mi.Color3f, rgb, sub.start + m - 1)
+        pos = pos + m
+        dr.scatter(trans, T, rid)
+        dr.scatter(acc, C, rid)
+        dr.scatter(taken, pos, rid)
+        dr.scatter(last, L, rid)
+        go = (T >= cfg.band_ert_eps) & (pos < total)
+        dr.eval(trans, acc, taken, last, T, C, pos, go)
+        keep = dr.compress(go)
+        rid, first, total, pos = (dr.gather(mi.UInt32, v, keep) for v in (rid, first, total, pos))
+        ro, rd = dr.gather(mi.Point3f, ro, keep), dr.gather(mi.Vector3f, rd, keep)
+        T, C = dr.gather(mi.Float, T, keep), dr.gather(mi.Color3f, C, keep)
+        dr.eval(rid, first, total, pos, ro, rd, T, C)
+    end = bg if samples.solid is None else dr.select(samples.solid, last, bg)
+    colour = dr.fma(end, trans, acc)
+    dr.eval(colour, taken)
+    return colour, taken
 
 
 def render_image(field: Any,
