@@ -5,7 +5,6 @@ sizes, stage 2 against the number of ray shards a step is drawn in (no optimiser
                                                  [--sizes [--profile]]
     python -m bench.step_speed stage2 RUN [--shards 1,4,1,8] [--steps 4] [--config X.json]
                                           [--calling-thread]
-    python -m bench.step_speed allocator RUN [--steps 100] [--rounds 2]
 
 RUN's training split (run.json's data set and downscale unless ``--data`` / ``--downscale``
 say otherwise) is composited on the run's background. Each subcommand's --help says more.
@@ -205,59 +204,9 @@ def time_shards(field, scene, data, pixels, cfg, background, shards: int,
             "samples_per_s": samples / steps / dt}
 
 
-def allocator(a: argparse.Namespace) -> int:
-    """glibc malloc settings against glibc's defaults: resumes copies of RUN's stage-1
-    checkpoint for --steps more steps with `shells-train --resume`, alternately with the
-    commands' settings (`shells.allocator`) and with SHELLS_SYSTEM_MALLOC=1, --rounds times
-    each; prints the wall time of each and the ratio of the medians (a copy's training starts
-    from the same checkpoint, so the losses must agree; they are printed too)."""
-    import json
-    import os
-    import shutil
-    import statistics
-    import subprocess
-    import tempfile
-    from pathlib import Path
-
-    from shells import allocator as malloc_settings
-
-    run = RunDir(a.run)
-    info = read_run(run)
-    step = int(json.loads((run.root / "train_summary.json").read_text())["step"])
-    env = {k: v for k, v in os.environ.items() if k not in malloc_settings.USER_VARIABLES}
-    times: dict[str, list[float]] = {"tuned": [], "glibc": []}
-    losses: dict[str, list[float]] = {"tuned": [], "glibc": []}
-    with tempfile.TemporaryDirectory(dir=a.tmp) as tmp:
-        for r in range(a.rounds):
-            for name in ("tuned", "glibc"):
-                out = Path(tmp) / f"{name}-{r}"
-                out.mkdir()
-                for f in ("checkpoint.pt", "config.json", "run.json", "train_summary.json",
-                          "train_log.jsonl", "train_curve.jsonl"):
-                    if (run.root / f).exists():
-                        shutil.copy2(run.root / f, out / f)
-                e = dict(env, **({malloc_settings.OPT_OUT: "1"} if name == "glibc" else {}))
-                cmd = [sys.executable, "-c", "import sys; from shells.cli import train_main; "
-                       "sys.exit(train_main())", "--data", info["data"], "--downscale",
-                       str(info["downscale"]), "--out", str(out), "--resume", "--iters",
-                       str(step + a.steps)]
-                t0 = time.perf_counter()
-                subprocess.run(cmd, env=e, check=True, capture_output=True)
-                times[name].append(time.perf_counter() - t0)
-                last = json.loads((out / "train_log.jsonl").read_text().splitlines()[-1])
-                losses[name].append(last.get("loss"))
-                print(f"{name} round {r}: {times[name][-1]:.1f} s", file=sys.stderr, flush=True)
-                shutil.rmtree(out)
-    med = {k: statistics.median(v) for k, v in times.items()}
-    emit_json({"run": a.run, "from_step": step, "steps": a.steps, "seconds": times,
-               "last_loss": losses, "speedup": med["glibc"] / med["tuned"],
-               "settings": {str(k): v for k, v in malloc_settings.SETTINGS.items()}})
-    return 0
-
-
 def main(argv: list[str] | None = None) -> int:
     p, sub = subcommands("python -m bench.step_speed", __doc__.split("\n\n")[0],
-                         [stage1, stage2, allocator])
+                         [stage1, stage2])
     sp = sub["stage1"]
     sp.add_argument("--data", default=None, help="default: RUN's data set (run.json)")
     sp.add_argument("--downscale", type=int, default=None, help="default: RUN's")
@@ -269,10 +218,6 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--config", default=None, help="JSON with render / finetune overrides")
     sp.add_argument("--calling-thread", action="store_true",
                     help="Dr.Jit's kernels on the calling thread alone")
-    sp = sub["allocator"]
-    sp.add_argument("--steps", type=int, default=100, help="stage-1 steps per timed run")
-    sp.add_argument("--rounds", type=int, default=2, help="timed runs of each setting")
-    sp.add_argument("--tmp", default=None, help="folder for the run copies (default: $TMPDIR)")
     return run_command(p, argv)
 
 
