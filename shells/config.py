@@ -210,8 +210,9 @@ class RenderConfig:
     # band mode's early ray termination (shells/render/frame.py, `_composite_rounds`): the band
     # samples are shaded front to back in rounds of band_chunk per live ray (doubling as rays
     # drop out), and a ray stops once its transmittance is below band_ert_eps; 0 = every
-    # sample of Procedure 3 (the torch band renderer's rule, which stage 2 trains with)
-    band_ert_eps: float = 1e-4
+    # sample of Procedure 3 (the torch band renderer's rule, which stage 2 trains with). The
+    # rounds have a fixed cost that small frames do not earn back (shells/presets.py, SHARP_BAND)
+    band_ert_eps: float = 0.0
     band_chunk: int = 2
     # image-space adaptive refinement (shells-render --refine L, shells/render/refine.py): a
     # pixel is interpolated from its parents only if every test passes, else evaluated

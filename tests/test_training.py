@@ -297,14 +297,17 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     assert (half.train.batch_rays, cfg.train.batch_rays) == (2048, 1024)
     assert preset_config("toy", big, 1, cpu)[0].finetune.iters == 500
     # a field as sharp as lego's at 800^2 (finest level 2048: 4 x 828 px / 3.1 = 1068 cells)
-    # gets its shells at 512^3, every mesh piece kept, further out and less far in; below it
-    # the shells keep the defaults
+    # gets its shells at 512^3, every mesh piece kept, further out, M- past f = -(h + s), 32
+    # peels and band early termination; below it the shells and the band keep the defaults
     sharp = preset_config("auto", write_tiny_blender(tmp_path / "sharp", res=512), 1, cpu)[0]
     assert sharp.field.max_resolution == 2048
     assert (sharp.shell.resolution, sharp.shell.min_component_fraction, sharp.shell.beta_d,
-            sharp.shell.beta_e) == (512, 0.0, 1.2, 0.3)
+            sharp.shell.beta_e, sharp.shell.support_k_inner, sharp.shell.support_k_outer,
+            sharp.render.dp_max, sharp.render.band_ert_eps) == (512, 0.0, 1.2, 0.3, 1.0, 0.0,
+                                                                32, 1e-4)
     assert (cfg.shell.resolution, cfg.shell.min_component_fraction, cfg.shell.beta_d,
-            cfg.shell.beta_e) == (256, 0.01, 0.6, 0.8)
+            cfg.shell.beta_e, cfg.shell.support_k_inner, cfg.render.dp_max,
+            cfg.render.band_ert_eps) == (256, 0.01, 0.6, 0.8, 0.0, 8, 0.0)
     # the weak Eikonal term is for bounded objects; an unbounded capture keeps the toy's 0.1
     from shells.fields.contraction import Similarity
     assert cfg.train.eikonal_weight == 0.005

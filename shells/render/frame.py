@@ -11,6 +11,9 @@ Per batch of rays (§3.4, §4.2):
     then: one batched field evaluation at all samples -> NeuS alpha (shells.fields.neus, the
           formula shared with training) with cos = d . n and the sample's section length ->
           front-to-back compositing per ray over the background (`shells.render.shading`).
+          Band mode with render.band_ert_eps > 0 (the sharp preset's) shades the samples in
+          rounds instead and stops a ray once its transmittance is below it
+          (`_composite_rounds`).
     baked: the baked layer meshes (`shells.render.baked`): each layer's nearest hit, its
           interpolated colour and opacity blended in the layers' fixed order; ``scene`` is then
           a `shells.render.baked.LayerScene` and the field is not used.
