@@ -138,7 +138,7 @@ UNBOUNDED_SHARDS = 4
 # are extracted at 512^3, keep every mesh piece (small pieces are real studs and rods) and
 # reach further out; its f inside a solid stays within a few s of 0, so M- lies only where
 # f < -(h + s) (the density-support term); a ray crosses more shell layers than 8 peels; and
-# band mode stops a ray at transmittance 1e-4 (its rounds pay at 800^2: 1351 -> 1128 ms/frame on
+# band mode stops a ray at transmittance 1e-4 (its rounds pay at 800^2: 1291 -> 1149 ms/frame on
 # lego, where at 200^2 they cost 63 -> 70 ms and at 64^2 5.5 -> 16.7 ms)
 SHARP_RESOLUTION = 2048
 SHARP_SHELLS = {"resolution": 512, "min_component_fraction": 0.0, "beta_d": 1.2, "beta_e": 0.3,
