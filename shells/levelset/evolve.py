@@ -365,18 +365,10 @@ def shell_sdfs(f0: np.ndarray,  # [X, Y, Z] SDF, f > 0 outside
                  cfg.erode_curvature, cfg.cfl, device, cfg.memory_mb,
                  "erode (M-)" if progress else None)
     plus, minus = np.minimum(f0, dil), np.maximum(f0, ero)
-    del dil, ero
     h = np.float32(0.5 * float(np.linalg.norm(np.asarray(spacing, dtype=np.float64))))
     s = np.asarray(s, dtype=np.float32)
-    for k, out, sign, pick in ((cfg.support_k_outer, plus, -1, np.minimum),
-                               (cfg.support_k_inner, minus, 1, np.maximum)):
-        if k > 0:  # out = pick(out, f0 + sign (h + k s)), one grid of temporary at 512^3
-            bound = np.multiply(s, np.float32(k))
-            bound += h
-            if sign < 0:
-                np.subtract(f0, bound, out=bound)
-            else:
-                bound += f0
-            pick(out, bound, out=out)
-            del bound
+    if cfg.support_k_outer > 0:
+        np.minimum(plus, f0 - (h + np.float32(cfg.support_k_outer) * s), out=plus)
+    if cfg.support_k_inner > 0:
+        np.maximum(minus, f0 + (h + np.float32(cfg.support_k_inner) * s), out=minus)
     return plus, minus

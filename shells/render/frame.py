@@ -153,8 +153,7 @@ def _composite_rounds(field: Any, samples: PackedSamples, o: Any, d: Any,
     pos = dr.zeros(mi.UInt32, dr.width(rid))  # samples taken so far by each live ray
     T = dr.ones(mi.Float, dr.width(rid))
     C = dr.zeros(mi.Color3f, dr.width(rid))
-    L = dr.zeros(mi.Color3f, dr.width(rid))
-    dr.eval(first, total, ro, rd, pos, T, C, L)
+    dr.eval(first, total, ro, rd, pos, T, C)
     black = mi.Color3f(0.0)
     R0 = max(dr.width(rid), 1)
     while dr.width(rid) > 0:
@@ -172,12 +171,11 @@ def _composite_rounds(field: Any, samples: PackedSamples, o: Any, d: Any,
         c_round, o_round = composite_packed(alpha, rgb, sub.start, m, black)
         C = dr.fma(c_round, T, C)
         T = T * (1.0 - o_round)
-        L = dr.gather(mi.Color3f, rgb, sub.start + m - 1)
         pos = pos + m
         dr.scatter(trans, T, rid)
         dr.scatter(acc, C, rid)
         dr.scatter(taken, pos, rid)
-        dr.scatter(last, L, rid)
+        dr.scatter(last, dr.gather(mi.Color3f, rgb, sub.start + m - 1), rid)
         go = (T >= cfg.band_ert_eps) & (pos < total)
         dr.eval(trans, acc, taken, last, T, C, pos, go)
         keep = dr.compress(go)
