@@ -5,6 +5,7 @@ sizes, stage 2 against the number of ray shards a step is drawn in (no optimiser
                                                  [--sizes [--profile]]
     python -m bench.step_speed stage2 RUN [--shards 1,4,1,8] [--steps 4] [--config X.json]
                                           [--calling-thread]
+    python -m bench.step_speed allocator RUN [--steps 300] [--rounds 2]
 
 RUN's training split (run.json's data set and downscale unless ``--data`` / ``--downscale``
 say otherwise) is composited on the run's background. Each subcommand's --help says more.
@@ -204,9 +205,56 @@ def time_shards(field, scene, data, pixels, cfg, background, shards: int,
             "samples_per_s": samples / steps / dt}
 
 
+def allocator(a: argparse.Namespace) -> int:
+    """glibc malloc settings against glibc's defaults: fresh `shells-train` runs of --steps
+    steps on RUN's data set (run.json; the default preset, scored on one test view), alternately with the commands'
+    settings (`shells.allocator`) and with SHELLS_SYSTEM_MALLOC=1, --rounds times each; prints
+    each run's training seconds (train_summary.json: the steps alone), minor page faults and
+    last loss (the same seed and data: the losses must agree), and the ratio of the medians."""
+    import json
+    import os
+    import resource
+    import statistics
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from shells import allocator as malloc_settings
+
+    info = read_run(RunDir(a.run))
+    env = {k: v for k, v in os.environ.items() if k not in malloc_settings.USER_VARIABLES
+           and k != malloc_settings.OPT_OUT}
+    rows: dict[str, list[dict[str, float]]] = {"tuned": [], "glibc": []}
+    with tempfile.TemporaryDirectory(dir=a.tmp) as tmp:
+        cfg = Path(tmp) / "one-view.json"
+        cfg.write_text(json.dumps({"train": {"eval_max_views": 1}}))
+        for r in range(a.rounds):
+            order = ("tuned", "glibc") if r % 2 == 0 else ("glibc", "tuned")
+            for name in order:
+                out = Path(tmp) / f"{name}-{r}"
+                e = dict(env, **({malloc_settings.OPT_OUT: "1"} if name == "glibc" else {}))
+                cmd = [sys.executable, "-c", "import sys; from shells.cli import train_main; "
+                       "sys.exit(train_main())", "--data", info["data"], "--downscale",
+                       str(info["downscale"]), "--out", str(out), "--iters", str(a.steps),
+                       "--config", str(cfg)]
+                before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_minflt
+                subprocess.run(cmd, env=e, check=True, capture_output=True)
+                faults = resource.getrusage(resource.RUSAGE_CHILDREN).ru_minflt - before
+                summary = json.loads((out / "train_summary.json").read_text())
+                rows[name].append({"seconds": summary["seconds"], "minor_faults": faults,
+                                   "loss": summary["last"]["loss"]})
+                print(f"{name} round {r}: {summary['seconds']:.1f} s, {faults} minor faults",
+                      file=sys.stderr, flush=True)
+    med = {k: statistics.median(x["seconds"] for x in v) for k, v in rows.items()}
+    emit_json({"data": info["data"], "downscale": info["downscale"], "steps": a.steps, "runs": rows,
+               "speedup": med["glibc"] / med["tuned"],
+               "settings": {str(k): v for k, v in malloc_settings.SETTINGS.items()}})
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p, sub = subcommands("python -m bench.step_speed", __doc__.split("\n\n")[0],
-                         [stage1, stage2])
+                         [stage1, stage2, allocator])
     sp = sub["stage1"]
     sp.add_argument("--data", default=None, help="default: RUN's data set (run.json)")
     sp.add_argument("--downscale", type=int, default=None, help="default: RUN's")
@@ -218,6 +266,10 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--config", default=None, help="JSON with render / finetune overrides")
     sp.add_argument("--calling-thread", action="store_true",
                     help="Dr.Jit's kernels on the calling thread alone")
+    sp = sub["allocator"]
+    sp.add_argument("--steps", type=int, default=300, help="stage-1 steps per timed run")
+    sp.add_argument("--rounds", type=int, default=2, help="timed runs of each setting")
+    sp.add_argument("--tmp", default=None, help="folder for the run copies (default: $TMPDIR)")
     return run_command(p, argv)
 
 

@@ -20,6 +20,7 @@ import traceback
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
+from shells import allocator
 from shells.errors import InputError, Interrupted, write_failure
 from shells.files import final_commit, late_signal, uninterrupted
 
@@ -52,8 +53,10 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
 
     Run as a program (``argv`` None), the command ignores SIGINT / SIGTERM once it has its
     status: a Ctrl-C while the interpreter shuts down (torch's and Dr.Jit's exit handlers take
-    a moment) would otherwise print a traceback after the result."""
+    a moment) would otherwise print a traceback after the result. glibc's malloc keeps freed
+    buffers in the process (`shells.allocator`)."""
     args = parser.parse_args(argv)
+    allocator.tune()  # before the first large buffer (`shells.allocator`)
     previous = signal.signal(signal.SIGTERM, _terminate)  # torchrun stops workers by SIGTERM
     status = 1
     try:
