@@ -8,12 +8,14 @@ at 800x800 spent 30 % of its CPU time in the kernel. `SETTINGS` keep all of it i
 no block is mmapped (the heap serves every size), and the heap is trimmed only when more than
 ``M_TRIM_THRESHOLD`` lies free at its top. The steps then reuse their memory, with identical
 results; ``python -m bench.step_speed allocator`` measures the ratio. The cost is freed memory
-held until it is reused or the process ends (the peak stays that of the largest step).
+held until it is reused or the process ends.
 
 The settings are the ones glibc's environment variables ``MALLOC_MMAP_MAX_``,
 ``MALLOC_TRIM_THRESHOLD_`` and ``MALLOC_TOP_PAD_`` give, applied with mallopt(3) at the start of
-a command. They are left alone where the user set any glibc malloc variable (or
-``GLIBC_TUNABLES``), where ``SHELLS_SYSTEM_MALLOC=1`` asks for glibc's defaults, and off glibc.
+the training commands (shells-train, shells-finetune): the others hold few short-lived large
+buffers, and a heap that cannot unmap could raise their peaks (the 512^3 extraction's). They
+are left alone where the user set any glibc malloc variable (or ``GLIBC_TUNABLES``), where
+``SHELLS_SYSTEM_MALLOC=1`` asks for glibc's defaults, and off glibc.
 """
 
 from __future__ import annotations

@@ -53,10 +53,8 @@ def _run(fn: Callable[[argparse.Namespace], int | None], parser: argparse.Argume
 
     Run as a program (``argv`` None), the command ignores SIGINT / SIGTERM once it has its
     status: a Ctrl-C while the interpreter shuts down (torch's and Dr.Jit's exit handlers take
-    a moment) would otherwise print a traceback after the result. glibc's malloc keeps freed
-    buffers in the process (`shells.allocator`)."""
+    a moment) would otherwise print a traceback after the result."""
     args = parser.parse_args(argv)
-    allocator.tune()  # before the first large buffer (`shells.allocator`)
     previous = signal.signal(signal.SIGTERM, _terminate)  # torchrun stops workers by SIGTERM
     status = 1
     try:
@@ -284,6 +282,7 @@ def _train(args: argparse.Namespace) -> int:
     from shells.presets import resolve_config
     from shells.train.stage1 import train
 
+    allocator.tune()  # training steps reuse their buffers (`shells.allocator`)
     device = torch_device(args.device)
     cfg, _ = resolve_config(args.data, device, args.preset, args.scene, args.downscale,
                             args.config, args.iters, args.resume)
@@ -348,6 +347,7 @@ def _finetune_args(p: argparse.ArgumentParser) -> None:
 def _finetune(args: argparse.Namespace) -> int:
     from shells.train.stage2 import finetune
 
+    allocator.tune()  # as in shells-train
     with _locked_run(args.run, "shells-finetune"):
         summary = finetune(args.run, iters=args.iters, resume=args.resume, config=args.config,
                            device=args.device, shells=args.shells)
