@@ -222,7 +222,7 @@ def allocator(a: argparse.Namespace) -> int:
     from shells import allocator as malloc_settings
 
     info = read_run(RunDir(a.run))
-    env = {k: v for k, v in os.environ.items() if k not in malloc_settings.USER_VARIABLES
+    env = {k: v for k, v in os.environ.items() if not malloc_settings.user_variable(k)
            and k != malloc_settings.OPT_OUT}
     rows: dict[str, list[dict[str, float]]] = {"tuned": [], "glibc": []}
     with tempfile.TemporaryDirectory(dir=a.tmp) as tmp:

@@ -31,15 +31,18 @@ SETTINGS = {  # mallopt parameter -> value
     M_TRIM_THRESHOLD: 1024 * MiB,  # return the heap top to the kernel only above 1 GiB free
     M_TOP_PAD: 256 * MiB,  # grow the heap in 256 MiB steps
 }
-USER_VARIABLES = ("MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_",
-                  "MALLOC_TOP_PAD_", "MALLOC_ARENA_MAX", "GLIBC_TUNABLES")
 OPT_OUT = "SHELLS_SYSTEM_MALLOC"
+
+
+def user_variable(name: str) -> bool:
+    """A variable by which the user sets glibc's malloc: MALLOC_*, GLIBC_TUNABLES."""
+    return name.startswith("MALLOC_") or name == "GLIBC_TUNABLES"
 
 
 def tune(environ: dict[str, str] | None = None) -> bool:
     """Apply `SETTINGS` with mallopt; True when all were applied, False when left alone."""
     env = os.environ if environ is None else environ
-    if env.get(OPT_OUT, "") not in ("", "0") or any(v in env for v in USER_VARIABLES):
+    if env.get(OPT_OUT, "") not in ("", "0") or any(user_variable(k) for k in env):
         return False
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return False

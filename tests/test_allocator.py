@@ -35,7 +35,7 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - start)
 
 
 def faults(env_extra: dict[str, str]) -> int:
-    env = {k: v for k, v in os.environ.items() if k not in allocator.USER_VARIABLES
+    env = {k: v for k, v in os.environ.items() if not allocator.user_variable(k)
            and k != allocator.OPT_OUT}
     env.update(env_extra)
     out = subprocess.run([sys.executable, "-c", CYCLES], env=env, capture_output=True,
