@@ -207,10 +207,11 @@ def time_shards(field, scene, data, pixels, cfg, background, shards: int,
 
 def allocator(a: argparse.Namespace) -> int:
     """glibc malloc settings against glibc's defaults: fresh `shells-train` runs of --steps
-    steps on RUN's data set (run.json; the default preset, scored on one test view), alternately with the commands'
-    settings (`shells.allocator`) and with SHELLS_SYSTEM_MALLOC=1, --rounds times each; prints
-    each run's training seconds (train_summary.json: the steps alone), minor page faults and
-    last loss (the same seed and data: the losses must agree), and the ratio of the medians."""
+    steps on RUN's data set (run.json; the default preset, scored on one test view),
+    alternately with the training commands' settings (`shells.allocator`) and with
+    SHELLS_SYSTEM_MALLOC=1, --rounds times each, who goes first alternating; prints each run's
+    training seconds (train_summary.json: the steps alone), minor page faults and last loss
+    (the same seed and data: the losses must agree), and the ratio of the medians."""
     import json
     import os
     import resource
