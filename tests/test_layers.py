@@ -6,7 +6,7 @@ dependency). Layers, bottom to top (a module may import only lower layers, or it
 subpackage at the same layer):
 
     0 errors
-    1 files         atomic writes, locks, signals; progress
+    1 files         atomic writes, locks, signals; progress; allocator (malloc settings)
     2 config, device, metrics, distributed
     3 data/         cameras, data sets, camera paths, COLMAP
     4 fields/       hash grid, networks, NeuS, contraction
@@ -29,7 +29,7 @@ RANKS = {
     "shells": 0,  # the package's __init__ (a docstring and the version)
     "shells.errors": 0,
     "shells.browser": 1,
-    "shells.files": 1, "shells.progress": 1,
+    "shells.files": 1, "shells.progress": 1, "shells.allocator": 1,
     "shells.config": 2, "shells.device": 2, "shells.metrics": 2, "shells.distributed": 2,
     "shells.data": 3, "scenes": 3,
     "shells.fields": 4,
