@@ -60,4 +60,8 @@ def test_user_settings_and_the_opt_out_are_left_alone():
     assert allocator.tune({"MALLOC_MMAP_MAX_": "65536"}) is False
     assert allocator.tune({"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=0"}) is False
     assert allocator.tune({allocator.OPT_OUT: "1"}) is False
-    assert allocator.tune({}) is GLIBC
+    # applied (in a process of its own: the settings would stay with the test process)
+    out = subprocess.run([sys.executable, "-c", "from shells import allocator; "
+                          "print(allocator.tune({}))"], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == str(GLIBC)
