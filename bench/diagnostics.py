@@ -5,18 +5,23 @@
     python -m bench.diagnostics weight RUN [--stage stage1] [--samples 64 --importance 32]
                                            [--slope normal|ray]
     python -m bench.diagnostics slope RUN [--stage stage1] [--resolution 160]
+    python -m bench.diagnostics density RUN [--stage stage1] [--densities 1 2 4]
 
 RENDER_DIRs are `shells-render` outputs of RUN's test split (r_###.png). ``error`` and ``ball``
 split the pooled squared error of each render by pixel class (silhouette edge, object,
 background; or rays entering / missing an unbounded run's ball of interest); ``weight`` splits
 the full-ray compositing weight by distance to the level set; ``slope`` prints |grad f| and
-the kernel's world-space width at the level set. Each subcommand's --help says more.
+the kernel's world-space width at the level set; ``density`` scores the running curve's
+held-out pixels with the trainer's renderer at several samples per ray. Each subcommand's
+--help says more.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import tempfile
 from pathlib import Path
 from typing import Callable
 
@@ -246,9 +251,38 @@ def slope(a: argparse.Namespace) -> int:
     return 0
 
 
+def density(a: argparse.Namespace) -> int:
+    """What the trainer's renderer sees of the field at more samples a ray: the running curve's
+    held-out pixels (`shells.train.stage1.RunningCurve`: the run's curve views, ``--pixels``
+    a view, the same fixed draw) rendered with the stage-1 occupancy grid at k times the run's
+    n_samples and n_importance for each k of ``--densities`` (``train.eval_density`` k).
+    Prints JSON: the pooled PSNR per density. A sharp field's training samples step over its
+    thin parts, so its PSNR keeps rising past density 1 until the samples resolve the kernel."""
+    import dataclasses
+
+    from shells.run import read_checkpoint
+    from shells.train.stage1 import RunningCurve, eval_samples, stage1_grid
+
+    run = RunDir(a.run)
+    field, cfg = load_field(run.root, stage=a.stage)
+    grid = stage1_grid(read_checkpoint(run, "stage1"), field, cfg)
+    data = test_views(run, cfg.data.background)
+    rows = []
+    for k in a.densities:
+        tc = dataclasses.replace(cfg.train, eval_density=k, curve_pixels=a.pixels)
+        with tempfile.TemporaryDirectory() as tmp:  # the curve's own record, read back
+            out = Path(tmp) / "curve.jsonl"
+            RunningCurve(data, tc, out, torch.device("cpu")).point(field, grid, 0, 0.0)
+            rec = json.loads(out.read_text())
+        rows.append({"density": k, "samples": list(eval_samples(tc)), "psnr": rec["psnr"],
+                     "views": rec["views"], "pixels": rec["pixels"]})
+    emit_json({"run": a.run, "stage": a.stage, "rows": rows})
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p, sub = subcommands("python -m bench.diagnostics", __doc__.split("\n\n")[0],
-                         [error, ball, weight, slope])
+                         [error, ball, weight, slope, density])
     for name in ("error", "ball"):
         sub[name].add_argument("renders", nargs="+", metavar="RENDER_DIR",
                                help="shells-render outputs of RUN's test split")
@@ -265,6 +299,11 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--slope", default="normal", choices=["normal", "ray"],
                     help="the opacity's slope (`train.slope`; default: what skipping renderers "
                          "use)")
+    sub["density"].add_argument("--stage", default="stage1", choices=["stage1", "stage2"])
+    sp = sub["density"]
+    sp.add_argument("--densities", type=int, nargs="+", default=[1, 2, 4],
+                    help="multiples of the run's samples a ray (train.eval_density)")
+    sp.add_argument("--pixels", type=int, default=16384, help="pixels a curve view")
     sp = sub["slope"]
     sp.add_argument("--resolution", type=int, default=160)
     sp.add_argument("--max-points", type=int, default=200000)

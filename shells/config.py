@@ -142,6 +142,9 @@ class TrainConfig:
     checkpoint_every: int = 500  # steps between atomic checkpoints
     log_every: int = 50  # steps between JSON-lines log records
     eval_max_views: int = 0  # test views scored at the end (0 = all)
+    eval_density: int = 1  # the trainer's own renders (running curve, test PSNR, stage-1
+    # renders) take this many times n_samples and n_importance per ray: a sharp field's
+    # training samples step over its thin parts and under-report it
     curve_every: int = 0  # steps between points of the running test curve (RUN/train_curve.jsonl:
     # PSNR on a fixed pixel subset of curve_views test views against total wall time); 0 = off
     curve_views: int = 3  # test views of the running curve, evenly spaced over the split
@@ -408,7 +411,7 @@ _RULES = [_rule(k, *r) for k, r in [
                                             "kernel_smooth_weight", "normal_weight",
                                             "smooth_eps", "eval_max_views", "offband_weight",
                                             "cull_weight", "free_weight", "curve_every")],
-    *[(f"train.{k}", _at_least(1)) for k in ("curve_views", "curve_pixels")],
+    *[(f"train.{k}", _at_least(1)) for k in ("curve_views", "curve_pixels", "eval_density")],
     ("train.free_transmittance", ((lambda v: 0 < v < 1), "must be in (0, 1)")),
     *[(f"{s}.color_loss", ((lambda v: v in COLOR_LOSSES), f"must be one of {COLOR_LOSSES}"))
       for s in ("train", "finetune")],

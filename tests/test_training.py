@@ -71,6 +71,31 @@ def _tiny_config(sampler: str = "box"):
     return cfg
 
 
+def test_trainer_renders_at_eval_density(tiny_blender, tmp_path):
+    """``eval_density`` k: the test PSNR and the running curve render k times the training's
+    coarse and importance samples a ray, exactly as a run of that many samples would; the
+    training steps keep theirs."""
+    import dataclasses
+    from shells.data.datasets import load_dataset
+    from shells.train.stage1 import RunningCurve, build_field, eval_samples, evaluate
+
+    cpu = torch.device("cpu")
+    tc = _tiny_config().train
+    test = load_dataset(tiny_blender, "test")
+    field = build_field(_tiny_config(), test.aabb, cpu)
+    dense = dataclasses.replace(tc, eval_density=2)
+    doubled = dataclasses.replace(tc, n_samples=32, n_importance=16)
+    assert eval_samples(dense) == (32, 16) and eval_samples(tc) == (16, 8)
+    with torch.no_grad():
+        at2, ref, at1 = (evaluate(field, test, c)["psnr_per_view"] for c in (dense, doubled, tc))
+    assert at2 == ref and at2 != at1
+    for c in (dense, doubled):  # the curve's pixels and samples: the same record both ways
+        RunningCurve(test, dataclasses.replace(c, curve_pixels=64), tmp_path / "c.jsonl",
+                     cpu).point(field, None, 1, 0.0)
+    a, b = (json.loads(ln)["psnr"] for ln in (tmp_path / "c.jsonl").open())
+    assert a == b
+
+
 @pytest.mark.parametrize("sampler", ["box", "occupancy"])
 def test_kill_and_resume_matches_uninterrupted(tiny_blender, tmp_path, sampler):
     cpu = torch.device("cpu")
@@ -308,6 +333,8 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     # ... and a stage 2 that draws 3/4 of the training pixels, within [base, 10 000] steps:
     # 4 views of 512^2 (1 M pixels) keep the base 3500
     assert sharp.finetune.iters == 3500
+    # ... and a trainer that renders its curve and test views at twice its samples per ray
+    assert (sharp.train.eval_density, cfg.train.eval_density) == (2, 1)
     from shells.presets import sharp_finetune_iters
     assert sharp_finetune_iters(3500, 87 * 800 * 800, 4096) == 10_000  # 0.75 * 55.7 M / 4096
     assert sharp_finetune_iters(3500, 20e6, 4096) == 3700  # 3662 rounded to 100

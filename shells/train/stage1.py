@@ -300,6 +300,12 @@ def before_step(field: ShellField, grid: SpanGrid | None, tc: TrainConfig, step:
 # Evaluation and the stage
 # ---------------------------------------------------------------------------------------------
 
+def eval_samples(tc: TrainConfig) -> tuple[int, int]:
+    """Samples per ray of the trainer's own renders (running curve, test PSNR,
+    `stage1_renderer`): ``eval_density`` times the training's (n_samples, n_importance)."""
+    return tc.n_samples * tc.eval_density, tc.n_importance * tc.eval_density
+
+
 def stage1_grid(ckpt: dict[str, Any], field: ShellField, cfg: Config) -> SpanGrid | None:
     """The occupancy grid stored in a stage-1 checkpoint of the "occupancy" sampler (None for
     "box"): what stage 1's own renderer (`evaluate`) samples with."""
@@ -314,7 +320,8 @@ def stage1_renderer(run_dir: str | Path, data_dir: str | Path
                   ) -> tuple[Dataset, Callable[[int], tuple[np.ndarray, np.ndarray]]]:
     """The test split of ``data_dir`` on the run's background, and a function that renders its
     view i with the run's stage-1 field as stage 1 samples it (full ray, the checkpoint's
-    occupancy grid where it has one): (colour [H, W, 3], opacity [H * W]) as numpy arrays."""
+    occupancy grid where it has one, `eval_samples` a ray): (colour [H, W, 3], opacity
+    [H * W]) as numpy arrays."""
     ckpt = read_checkpoint(RunDir(run_dir))
     field, cfg = field_from_checkpoint(ckpt, "stage 1")
     grid = stage1_grid(ckpt, field, cfg)
@@ -325,8 +332,7 @@ def stage1_renderer(run_dir: str | Path, data_dir: str | Path
     def render(i: int) -> tuple[np.ndarray, np.ndarray]:
         ro, rd = test.cameras.pixel_rays(i, 1)
         with torch.no_grad():
-            img = render_volume_image(field, ro, rd, cfg.train.n_samples,
-                                      cfg.train.n_importance, bg, grid=grid,
+            img = render_volume_image(field, ro, rd, *eval_samples(cfg.train), bg, grid=grid,
                                       slope=cfg.train.slope)
         return img["color"].reshape(H, W, 3).numpy(), img["opacity"].numpy()
 
@@ -336,8 +342,8 @@ def stage1_renderer(run_dir: str | Path, data_dir: str | Path
 class RunningCurve:
     """Stage 1's running test curve: every ``train.curve_every`` steps, the full-ray PSNR of a
     fixed random subset of pixels (``curve_pixels`` per view) of ``curve_views`` test views
-    spread over the split, appended with the step and the wall time to RUN/train_curve.jsonl.
-    Uniformly drawn pixels give an unbiased estimate of the views' mean squared error at a
+    spread over the split (`eval_samples` a ray), appended with the step and the wall time to
+    RUN/train_curve.jsonl. Uniformly drawn pixels give an unbiased estimate of the views' mean squared error at a
     small share of a full render's cost; the training's random streams are not touched."""
 
     def __init__(self, test: Dataset, tc: TrainConfig, path: Path, device: torch.device) -> None:
@@ -359,9 +365,8 @@ class RunningCurve:
 
     def point(self, field: ShellField, grid: SpanGrid | None, step: int, wall_s: float) -> None:
         with torch.no_grad():
-            img = render_volume_image(field, self.origins, self.dirs, self.tc.n_samples,
-                                      self.tc.n_importance, self.background, grid=grid,
-                                      slope=self.tc.slope)
+            img = render_volume_image(field, self.origins, self.dirs, *eval_samples(self.tc),
+                                      self.background, grid=grid, slope=self.tc.slope)
         append_log(self.path, {"step": step, "wall_s": wall_s,
                                "psnr": psnr(img["color"].cpu().numpy()[:, None],
                                             self.target[:, None]),  # [P, 1, 3]
@@ -371,16 +376,16 @@ class RunningCurve:
 def evaluate(field: ShellField, data: Dataset, tc: TrainConfig, max_views: int = 0,
              device: torch.device | None = None, grid: SpanGrid | None = None,
              ) -> dict[str, Any]:
-    """Full-ray test PSNR (deterministic sample placement) over the views of `data`; with
-    ``grid``, each ray is sampled on its occupied span as in training."""
+    """Full-ray test PSNR (deterministic sample placement, `eval_samples` a ray) over the
+    views of `data`; with ``grid``, each ray is sampled on its occupied span as in training."""
     device = device or field.aabb.device
     bg = torch.tensor(data.background, device=device)
     n = len(data.cameras) if max_views <= 0 else min(max_views, len(data.cameras))
     scores = []
     for i in range(n):
         o, d = data.cameras.pixel_rays(i, tc.pixel_samples)
-        img = render_volume_image(field, o.to(device), d.to(device), tc.n_samples,
-                                  tc.n_importance, bg, grid=grid, slope=tc.slope)
+        img = render_volume_image(field, o.to(device), d.to(device), *eval_samples(tc), bg,
+                                  grid=grid, slope=tc.slope)
         pred = img["color"].reshape(-1, tc.pixel_samples, 3).mean(1)  # box filter
         pred = pred.reshape(data.images.shape[1:]).cpu()
         scores.append(psnr(pred.numpy(), data.images[i].numpy()))
