@@ -299,8 +299,8 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--slope", default="normal", choices=["normal", "ray"],
                     help="the opacity's slope (`train.slope`; default: what skipping renderers "
                          "use)")
-    sub["density"].add_argument("--stage", default="stage1", choices=["stage1", "stage2"])
     sp = sub["density"]
+    sp.add_argument("--stage", default="stage1", choices=["stage1", "stage2"])
     sp.add_argument("--densities", type=int, nargs="+", default=[1, 2, 4],
                     help="multiples of the run's samples a ray (train.eval_density)")
     sp.add_argument("--pixels", type=int, default=16384, help="pixels a curve view")

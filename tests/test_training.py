@@ -73,8 +73,7 @@ def _tiny_config(sampler: str = "box"):
 
 def test_trainer_renders_at_eval_density(tiny_blender, tmp_path):
     """``eval_density`` k: the test PSNR and the running curve render k times the training's
-    coarse and importance samples a ray, exactly as a run of that many samples would; the
-    training steps keep theirs."""
+    coarse and importance samples a ray, exactly as a run of that many samples would."""
     import dataclasses
     from shells.data.datasets import load_dataset
     from shells.train.stage1 import RunningCurve, build_field, eval_samples, evaluate

@@ -343,8 +343,9 @@ class RunningCurve:
     """Stage 1's running test curve: every ``train.curve_every`` steps, the full-ray PSNR of a
     fixed random subset of pixels (``curve_pixels`` per view) of ``curve_views`` test views
     spread over the split (`eval_samples` a ray), appended with the step and the wall time to
-    RUN/train_curve.jsonl. Uniformly drawn pixels give an unbiased estimate of the views' mean squared error at a
-    small share of a full render's cost; the training's random streams are not touched."""
+    RUN/train_curve.jsonl. Uniformly drawn pixels give an unbiased estimate of the views' mean
+    squared error at a small share of a full render's cost; the training's random streams are
+    not touched."""
 
     def __init__(self, test: Dataset, tc: TrainConfig, path: Path, device: torch.device) -> None:
         n_views, k = len(test), min(tc.curve_views, len(test))
