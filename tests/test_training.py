@@ -327,7 +327,7 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     assert sharp.field.max_resolution == 2048
     assert (sharp.shell.resolution, sharp.shell.min_component_fraction, sharp.shell.beta_d,
             sharp.shell.beta_e, sharp.shell.support_k_inner, sharp.shell.support_k_outer,
-            sharp.render.dp_max, sharp.render.band_ert_eps) == (512, 0.0, 1.2, 0.3, 1.0, 0.0,
+            sharp.render.dp_max, sharp.render.band_ert_eps) == (512, 0.0, 1.2, 0.3, 3.0, 0.0,
                                                                 32, 1e-4)
     # ... and a stage 2 that draws 3/4 of the training pixels, within [base, 10 000] steps:
     # 4 views of 512^2 (1 M pixels) keep the base 3500
