@@ -146,8 +146,8 @@ UNBOUNDED_SHARDS = 4
 # learns kernels under a 256^3 cell, and its fine parts fall between grid points: its shells
 # are extracted at 512^3, keep every mesh piece (small pieces are real studs and rods) and
 # reach further out; its f inside a solid stays within a few s of 0, so M- lies only where
-# f < -(h + 3 s) (the density-support term: at 1 s instead, stage 2 left lego at 800^2 0.69 dB
-# and a thin-parts capture 0.32 dB lower); a ray crosses more shell layers than 8 peels; and
+# f < -(h + 3 s) (the density-support term; a shallower M- ends rays where the surface still
+# absorbs, more so as the field sharpens); a ray crosses more shell layers than 8 peels; and
 # band mode stops a ray at transmittance 1e-4 (its rounds pay at 800^2: 1291 -> 1149 ms/frame on
 # lego, where at 200^2 they cost 63 -> 70 ms and at 64^2 5.5 -> 16.7 ms)
 SHARP_RESOLUTION = 2048
