@@ -18,7 +18,7 @@ FIGURES = ROOT / "docs" / "figures.py"
 SCRIPTS = sorted(p.stem for p in (ROOT / "bench").glob("*.py")
                  if p.stem not in ("__init__", "report"))
 SUBCOMMANDS = {"diagnostics": ["error", "ball", "weight", "slope", "density"],
-               "step_speed": ["stage1", "stage2"],
+               "step_speed": ["stage1", "stage2", "allocator"],
                "figures": ["demo", "animation", "curve", "baked"]}
 
 
