@@ -3,6 +3,7 @@ also image-space refinement against the band render, and the fine against the LO
 
     python -m bench.render_speed RUN [--width 1920 --height 1080] [--views N] [--stage latest]
                                      [--append BENCHMARKS.md] [--out DIR] [--config FILE]
+                                     [--modes band full occupancy floor] [--grid-stage stage1]
     python -m bench.render_speed RUN --refine [--levels 3] [--sizes 400 800]
                                      [--view-ids 0 4 8 12] [--distances 0.6 0.8 1.0 1.4 2.0]
                                      [--repeats 2] [--config FILE] [--json OUT]
@@ -22,9 +23,11 @@ with the same Dr.Jit field in four ways:
                once before timing, its build time is reported separately
     floor      primary rays against M+ alone, no field evaluation: the time floor of `band`
 
-and reported as one Markdown table: samples/pixel (mean over all pixels), median warm ms/frame
-(`shells.render.views.render_views`: the first frame compiles kernels and is not counted; with one
-view a second render of it is timed), and PSNR/SSIM (`shells.metrics`) when rendering at the
+(``--modes``: only those; ``--grid-stage stage1``: the grid built from the run's stage-1 field,
+which knows the empty space a stage-2 field was never sampled in), and reported as one Markdown
+table: samples/pixel (mean over all pixels), median warm ms/frame
+(`shells.render.views.render_views`: the first frame compiles kernels and is not counted; with
+one view a second render of it is timed), and PSNR/SSIM (`shells.metrics`) when rendering at the
 data set's own resolution (only speed otherwise). The table is printed, written with the raw
 numbers to OUT/render_speed.{md,json} (OUT default RUN/bench-speed-WxH), and with ``--append``
 appended to FILE together with the command, the device (Mitsuba variant) and the date. A plot of
@@ -84,6 +87,7 @@ LABELS = {
     "occupancy": "occupancy grid",
     "floor": "M+ ray cast only (floor)",
 }
+MODES = ("band", "full", "occupancy", "floor")
 COLOURS = {"band": (214, 39, 40), "full": (31, 119, 180), "occupancy": (44, 160, 44),
            "floor": (127, 127, 127)}
 
@@ -112,17 +116,20 @@ def time_floor(scene: Any, cameras: Any) -> dict[str, Any]:
 
 
 def markdown_table(rows: dict[str, dict[str, Any]]) -> str:
-    """One row per method; speed-up relative to full ray."""
+    """One row per method; speed-up relative to full ray, or to the occupancy grid when full
+    ray was not rendered."""
     def num(v, fmt):
         return "–" if v is None else format(v, fmt)
 
-    full_ms = rows["full"]["ms_per_frame"]
-    lines = ["| method | samples/pixel | ms/frame (median, warm) | speed-up vs full | PSNR "
-             "| SSIM |",
+    ref = "full" if "full" in rows else "occupancy" if "occupancy" in rows else None
+    ref_ms = rows[ref]["ms_per_frame"] if ref else None
+    lines = [f"| method | samples/pixel | ms/frame (median, warm) | speed-up vs {ref or '–'} "
+             "| PSNR | SSIM |",
              "|---|---:|---:|---:|---:|---:|"]
     for mode, m in rows.items():
+        up = "–" if ref_ms is None else f"{ref_ms / m['ms_per_frame']:.1f}x"
         lines.append(f"| {LABELS[mode]} | {num(m['samples_per_pixel'], '.2f')} | "
-                     f"{num(m['ms_per_frame'], '.2f')} | {full_ms / m['ms_per_frame']:.1f}x | "
+                     f"{num(m['ms_per_frame'], '.2f')} | {up} | "
                      f"{num(m['psnr'], '.2f')} | {num(m['ssim'], '.4f')} |")
     return "\n".join(lines)
 
@@ -234,8 +241,11 @@ def open_run(run_dir: Path, stage: str = "latest", overrides: dict[str, Any] | N
 def run_bench(run_dir: Path, split: str = "test", width: int | None = None,
               height: int | None = None, views: int | None = None, stage: str = "latest",
               out: Path | None = None, overrides: dict[str, Any] | None = None,
-              progress: bool = False) -> dict[str, Any]:
-    """Render the views in all four ways; returns rows {mode: metrics} plus run facts."""
+              progress: bool = False, modes: tuple[str, ...] = MODES,
+              grid_stage: str | None = None) -> dict[str, Any]:
+    """Render the views in the ``modes`` (of MODES); returns rows {mode: metrics} plus run
+    facts. ``grid_stage``: the occupancy grid is built from that stage's field of the run
+    (default: the rendered field's own)."""
     from shells.fields.drjit_field import DrJitField
     from shells.levelset.mesh import load_ply
     from shells.render.occupancy import grid_summary, march_step, occupancy_grid
@@ -251,28 +261,36 @@ def run_bench(run_dir: Path, split: str = "test", width: int | None = None,
     dj = DrJitField(r.field)
     out = Path(out) if out else run.root / f"bench-speed-{cams.width}x{cams.height}"
 
-    dr.sync_thread()
-    t0 = time.perf_counter()
-    grid = occupancy_grid(dj, data.aabb, rc)  # cached on dj: render_views reuses it
-    dr.sync_thread()
-    grid_s = time.perf_counter() - t0
+    grid, grid_s = None, None
+    if "occupancy" in modes:
+        source = (DrJitField(load_field(run.root, device="cpu", stage=grid_stage)[0])
+                  if grid_stage else None)
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        grid = occupancy_grid(dj, data.aabb, rc, source)  # cached on dj: render_views uses it
+        dr.sync_thread()
+        grid_s = time.perf_counter() - t0
 
     rows: dict[str, dict[str, Any]] = {}
-    for mode in ("band", "full", "occupancy"):
+    for mode in modes:
+        if mode == "floor":
+            rows[mode] = time_floor(outer_only, cams)
+            continue
         (out / mode).mkdir(parents=True, exist_ok=True)
         rows[mode] = render_views(dj, cams, images, rc, mode, r.scene if mode == "band" else None,
                                   data.aabb, out / mode, progress, bg)
-    rows["floor"] = time_floor(outer_only, cams)
     return {
         "rows": rows, "out": out, "run": str(run.root), "split": split, "stage": stage,
+        "grid_stage": grid_stage or stage,
         "width": cams.width, "height": cams.height, "n_views": n, "variant": variant,
-        "same_size": same_size, "grid_build_s": grid_s, "grid": grid_summary(grid),
+        "same_size": same_size, "grid_build_s": grid_s,
+        "grid": grid_summary(grid) if grid is not None else None,
         "occ_step": march_step(data.aabb, rc), "render_config": dataclasses.asdict(rc),
     }
 
 
 def report_bench(res: dict[str, Any], command: str, append: Path | None) -> None:
-    """Print the four-way table with its notes; write OUT/render_speed.{md,json,png}."""
+    """Print the table of the modes with its notes; write OUT/render_speed.{md,json,png}."""
     rows, out, rc = res["rows"], res["out"], res["render_config"]
     date = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     g = res["grid"]
@@ -285,13 +303,17 @@ def report_bench(res: dict[str, Any], command: str, append: Path | None) -> None
         + ("" if res["same_size"] else " (not the data set's resolution: speed only)"),
         f"- full: {rc['full_samples']} samples/ray over the box; band: dp_max {rc['dp_max']}, "
         f"w_s {rc['w_s']}, delta_s {rc['delta_s']}, N_max {rc['n_max']}",
-        f"- occupancy: {g['resolution']}^3 grid, k = {rc['occ_k']}, {g['occupied_fraction']:.1%} "
-        f"cells occupied, built in {res['grid_build_s']:.2f} s (not in ms/frame); "
-        f"dt = {res['occ_step']:.5f}, {rc['occ_chunk']} samples/ray/round, "
-        f"ERT at T < {rc['ert_eps']:g}",
-        f"- floor: primary rays against M+ only, covering {rows['floor']['covered_fraction']:.1%} "
-        "of the pixels; samples/pixel = field evaluations, mean over all pixels",
     ]
+    if g is not None:
+        notes.append(
+            f"- occupancy: {g['resolution']}^3 grid of the {res['grid_stage']} field, k = "
+            f"{rc['occ_k']}, {g['occupied_fraction']:.1%} cells occupied, built in "
+            f"{res['grid_build_s']:.2f} s (not in ms/frame); dt = {res['occ_step']:.5f}, "
+            f"{rc['occ_chunk']} samples/ray/round, ERT at T < {rc['ert_eps']:g}")
+    if "floor" in rows:
+        notes.append(f"- floor: primary rays against M+ only, covering "
+                     f"{rows['floor']['covered_fraction']:.1%} of the pixels")
+    notes.append("- samples/pixel = field evaluations, mean over all pixels")
     table = markdown_table(rows)
     section = (f"### Render speed: {Path(res['run']).name}, {res['width']}x{res['height']}, "
                f"{res['variant']}\n\n" + "\n".join(notes) + "\n\n" + table + "\n")
@@ -482,6 +504,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--occ-resolution", type=int, default=None, help="override occ_resolution")
     p.add_argument("--occ-k", type=float, default=None, help="override occ_k")
     p.add_argument("--occ-chunk", type=int, default=None, help="override occ_chunk")
+    p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES,
+                   help="which renders (default: all four)")
+    p.add_argument("--grid-stage", default=None, choices=["stage1", "stage2"],
+                   help="build the occupancy grid from this stage's field of the run (default: "
+                        "the rendered field's own; a stage-2 field outside the band is untrained)")
     p.add_argument("--progress", action="store_true")
     g = p.add_argument_group("--refine")
     g.add_argument("--levels", type=int, default=3, help="render.refine_levels of the refined")
@@ -511,7 +538,8 @@ def main(argv: list[str] | None = None) -> int:
             emit_json(baked_bench(args), args.json)
         else:
             report_bench(run_bench(args.run, args.split, args.width, args.height, args.views,
-                                   args.stage, args.out, overrides, args.progress),
+                                   args.stage, args.out, overrides, args.progress,
+                                   tuple(args.modes), args.grid_stage),
                          command_line("render_speed", argv), args.append)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)

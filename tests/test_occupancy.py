@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import drjit as dr
@@ -90,6 +91,30 @@ def test_grid_is_cached_per_field_and_config(sphere):
     assert occupancy_grid(sphere, AABB, cfg) is g1
     assert occupancy_grid(sphere, AABB, RenderConfig(occ_resolution=8, occ_k=4.0)) is not g1
     assert occupancy_grid(Sphere(), AABB, cfg) is not g1
+
+
+class SmallSphere(Sphere):
+    """The same sphere at radius 0.2."""
+
+    def eval_geometry(self, x):
+        r = dr.norm(x)
+        return FieldSample(sdf=r - 0.2, s=dr.full(mi.Float, S, dr.width(r)), normal=None,
+                           rgb=None)
+
+
+def test_grid_from_another_field_takes_the_place_of_the_fields_own(sphere):
+    # the baseline bench.render_speed --grid-stage gives a stage-2 field: the grid of another
+    # field (the run's stage-1 one), cached where the field's own would be
+    cfg = RenderConfig(occ_resolution=16)
+    field = Sphere()
+    own = occupancy_grid(field, AABB, cfg)
+    small = SmallSphere()
+    g = occupancy_grid(field, AABB, cfg, source=small)
+    assert occupancy_grid(field, AABB, cfg) is g
+    want = build_occupancy_grid(small, AABB, 16, cfg.occ_k, cfg.occ_jitter)
+    assert torch.equal(g.dense(), want.dense())
+    assert not torch.equal(g.dense(), own.dense())
+    assert g.fraction < own.fraction  # the smaller sphere's cells
 
 
 def test_occupancy_matches_dense_full_render_with_far_fewer_samples(sphere):
@@ -217,3 +242,13 @@ def test_render_speed_bench_end_to_end(tmp_path, tiny_blender, capsys):
     assert (out / "occupancy" / "r_000.png").is_file()
     assert "render_speed.png" in capsys.readouterr().out
     assert (out / "render_speed.png").is_file()
+    # a subset of the modes, the grid from a named stage's field: those rows only, speed-up
+    # against the occupancy grid, and the grid's stage in the notes and the JSON
+    out2 = tmp_path / "out2"
+    assert bench.main([str(run), "--views", "1", "--occ-resolution", "16", "--modes", "band",
+                       "occupancy", "--grid-stage", "stage1", "--out", str(out2)]) == 0
+    part = (out2 / "render_speed.md").read_text()
+    assert f"| {bench.LABELS['band']} |" in part and f"| {bench.LABELS['full']} |" not in part
+    assert "speed-up vs occupancy" in part and "grid of the stage1 field" in part
+    assert json.loads((out2 / "render_speed.json").read_text())["grid_stage"] == "stage1"
+    assert not (out2 / "full").exists()

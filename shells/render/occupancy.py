@@ -163,11 +163,15 @@ def build_occupancy_grid(field: Any,  # Dr.Jit field: eval_geometry(x) or eval(x
 _GRIDS: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary()
 
 
-def occupancy_grid(field: Any, aabb: Any, cfg: RenderConfig) -> OccupancyGrid:
+def occupancy_grid(field: Any, aabb: Any, cfg: RenderConfig,
+                   source: Any = None) -> OccupancyGrid:
     """The field's grid for this box and config, built on first use and cached with the field.
 
     The cache is keyed by the field object (a rebuilt DrJitField gets a new grid) and the
-    box/resolution/k/jitter; it lives as long as the field does.
+    box/resolution/k/jitter; it lives as long as the field does. ``source``: build the grid
+    from another field's f and s instead (e.g. the same run's stage-1 field, whose geometry
+    outside the band stage 2 never sampled); it then takes the place of the field's own grid
+    in the cache, so later renders of ``field`` march through it.
     """
     key = (tuple(_box(aabb).reshape(-1).tolist()), int(cfg.occ_resolution), float(cfg.occ_k),
            int(cfg.occ_jitter))
@@ -175,9 +179,9 @@ def occupancy_grid(field: Any, aabb: Any, cfg: RenderConfig) -> OccupancyGrid:
         per_field = _GRIDS.setdefault(field, {})
     except TypeError:  # not weak-referenceable: no caching
         per_field = {}
-    if key not in per_field:
-        per_field[key] = build_occupancy_grid(field, aabb, cfg.occ_resolution, cfg.occ_k,
-                                              cfg.occ_jitter)
+    if key not in per_field or source is not None:
+        per_field[key] = build_occupancy_grid(field if source is None else source, aabb,
+                                              cfg.occ_resolution, cfg.occ_k, cfg.occ_jitter)
     return per_field[key]
 
 
