@@ -88,7 +88,7 @@ def sharp_finetune_iters(base: int, pixels: float, batch_rays: int) -> int:
     """Stage-2 steps of the object preset's sharp fields: ``base`` (`object_finetune_iters`),
     or enough steps of ``batch_rays`` rays to draw SHARP_FINETUNE_SHARE of the ``pixels``
     training pixels if that is more, rounded to 100, at most SHARP_FINETUNE_MAX: lego at 800^2
-    (55.7 M pixels) gets 10 000, a 32-view capture of 512^2 the base 3500."""
+    (55.7 M pixels) gets 20 000, a 32-view capture of 512^2 the base 3500."""
     share = 100 * round(SHARP_FINETUNE_SHARE * pixels / batch_rays / 100)
     return max(base, min(SHARP_FINETUNE_MAX, share))
 
@@ -159,10 +159,10 @@ SHARP_BAND = {"dp_max": 32, "band_ert_eps": 1e-4}
 # under-report its field by 1.4 dB; 64 + 32 come within 0.05 dB of 128 + 64
 SHARP_TRAIN = {"eval_density": 2}
 # ... and its stage 2 sees at least this share of the training pixels' rays: on lego at 800^2
-# 3500 steps of 4096 rays (0.26 of them) left the band 0.38 dB under its field's full ray,
-# 10 000 (0.74) within 0.15 dB; at most SHARP_FINETUNE_MAX steps (21 min on 2 cores there)
-SHARP_FINETUNE_SHARE = 0.75
-SHARP_FINETUNE_MAX = 10_000
+# (these shells) steps of 4096 rays drawing 0.26 / 0.74 / 1.47 of them gave the band 29.54 (k = 1
+# shells) / 30.44 / 30.89 dB; at most SHARP_FINETUNE_MAX steps (43 min on 2 cores there)
+SHARP_FINETUNE_SHARE = 1.5
+SHARP_FINETUNE_MAX = 20_000
 START_RADII = 2.0  # the unbounded object preset's rays start this many radii from the centre
 CAMERA_SHARE = 0.8  # ... or at this share of the nearest training camera's distance, if less
 
