@@ -19,7 +19,6 @@ held-out pixels with the trainer's renderer at several samples per ray. Each sub
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import tempfile
 from pathlib import Path
@@ -270,10 +269,9 @@ def density(a: argparse.Namespace) -> int:
     rows = []
     for k in a.densities:
         tc = dataclasses.replace(cfg.train, eval_density=k, curve_pixels=a.pixels)
-        with tempfile.TemporaryDirectory() as tmp:  # the curve's own record, read back
-            out = Path(tmp) / "curve.jsonl"
-            RunningCurve(data, tc, out, torch.device("cpu")).point(field, grid, 0, 0.0)
-            rec = json.loads(out.read_text())
+        with tempfile.TemporaryDirectory() as tmp:  # the curve's file is not kept
+            curve = RunningCurve(data, tc, Path(tmp) / "curve.jsonl", torch.device("cpu"))
+            rec = curve.point(field, grid, 0, 0.0)
         rows.append({"density": k, "samples": list(eval_samples(tc)), "psnr": rec["psnr"],
                      "views": rec["views"], "pixels": rec["pixels"]})
     emit_json({"run": a.run, "stage": a.stage, "rows": rows})

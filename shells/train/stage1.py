@@ -364,14 +364,18 @@ class RunningCurve:
         self.background = torch.tensor(test.background, device=device)
         self.tc, self.path = tc, path
 
-    def point(self, field: ShellField, grid: SpanGrid | None, step: int, wall_s: float) -> None:
+    def point(self, field: ShellField, grid: SpanGrid | None, step: int, wall_s: float
+              ) -> dict[str, Any]:
+        """Render the curve's pixels, append the record to the curve's file and return it."""
         with torch.no_grad():
             img = render_volume_image(field, self.origins, self.dirs, *eval_samples(self.tc),
                                       self.background, grid=grid, slope=self.tc.slope)
-        append_log(self.path, {"step": step, "wall_s": wall_s,
-                               "psnr": psnr(img["color"].cpu().numpy()[:, None],
-                                            self.target[:, None]),  # [P, 1, 3]
-                               "views": self.views, "pixels": len(self.target)})
+        record = {"step": step, "wall_s": wall_s,
+                  "psnr": psnr(img["color"].cpu().numpy()[:, None],
+                               self.target[:, None]),  # [P, 1, 3]
+                  "views": self.views, "pixels": len(self.target)}
+        append_log(self.path, record)
+        return record
 
 
 def evaluate(field: ShellField, data: Dataset, tc: TrainConfig, max_views: int = 0,
