@@ -247,6 +247,11 @@ class FinetuneConfig:
     lr_mlp: float = 1e-4  # Adam learning rate for MLP weights
     warmup_iters: int = 0  # linear learning-rate warm-up
     lr_final_factor: float = 0.1  # cosine decay to lr * this factor at the last step
+    # The field outside M+, which the band never samples, held at its stage-1 values: weight
+    # of mean |log s - log s1| + |f - f1| / (longest side of the field's box) at
+    # `anchor_points` uniform points of the box outside M+ each step (0: off)
+    anchor_weight: float = 0.1
+    anchor_points: int = 1024
     seed: int = 0  # RNG seed
     checkpoint_every: int = 500  # steps between atomic checkpoints
     log_every: int = 50  # steps between JSON-lines log records
@@ -405,6 +410,8 @@ _RULES = [_rule(k, *r) for k, r in [
       for s in ("train", "finetune")],
     *[(f"{s}.{k}", _positive()) for s in ("train", "finetune") for k in ("lr", "lr_mlp")],
     *[(f"{s}.warmup_iters", _at_least(0)) for s in ("train", "finetune")],
+    ("finetune.anchor_weight", _at_least(0)),
+    ("finetune.anchor_points", _at_least(1)),
     *[(f"{s}.lr_final_factor", _fraction()) for s in ("train", "finetune")],
     ("train.n_samples", _at_least(1)),
     *[(f"train.{k}", _at_least(0)) for k in ("n_importance", "eikonal_weight",

@@ -150,3 +150,33 @@ def test_solid_end_carries_gradient_to_the_last_sample(trained):
     # weights w_i = T_i alpha_i sum to the opacity; the last sample also takes the rest
     assert float(g.sum()) == pytest.approx(1.0, abs=1e-5)
     assert float(g[-1]) >= left - 1e-6
+
+
+def test_extra_points_in_the_samples_batch_change_nothing_else(trained):
+    """Points evaluated in the band's batch (`extra`, the stage-2 anchor's): the colour is the
+    same as without them, their f and s are the field's own, and the gradient of a loss on
+    both is the sum of the gradients of the two parts taken apart (float64)."""
+    field32, cfg, scene, o, d, H, W = trained
+    field = copy.deepcopy(field32).double()
+    o, d = o[::2].double(), d[::2].double()
+    bg = torch.tensor(cfg.data.background, dtype=torch.float64)
+    x = (torch.rand(500, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+         * 2 - 1)
+    wts = torch.rand(len(o), 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    def grads(loss: torch.Tensor) -> list[torch.Tensor]:
+        return [g if g is not None else torch.zeros_like(p) for p, g in
+                zip(field.parameters(), torch.autograd.grad(loss, list(field.parameters()),
+                                                            allow_unused=True))]
+
+    both = render_band_rays(field, scene, o, d, cfg.render, bg, extra=x)
+    alone = render_band_rays(field, scene, o, d, cfg.render, bg)
+    geo = field.geometry(x)
+    assert torch.allclose(both["color"], alone["color"], atol=1e-12)
+    assert torch.allclose(both["extra_sdf"], geo["sdf"], atol=1e-12)
+    assert torch.allclose(both["extra_s"], geo["s"], atol=1e-12)
+    g_both = grads(_loss(both["color"], wts) + both["extra_sdf"].sum() + both["extra_s"].sum())
+    g_parts = [a + b for a, b in zip(grads(_loss(alone["color"], wts)),
+                                     grads(geo["sdf"].sum() + geo["s"].sum()))]
+    assert all(torch.allclose(a, b, atol=1e-10) for a, b in zip(g_both, g_parts))
+    assert any(b.abs().sum() > 0 for b in grads(field.geometry(x)["sdf"].sum()))  # they count

@@ -219,3 +219,107 @@ def test_finetune_on_cuda_tracks_cpu(stage1_run, tmp_path):
         assert all(torch.isfinite(p).all() for p in f.parameters())
     finally:
         mitsuba_variant("llvm_ad_rgb")
+
+
+def _sphere_scene(r_outer=0.5, r_inner=0.3):
+    import trimesh
+
+    from shells.render.raycast import ShellScene
+
+    o = trimesh.creation.icosphere(subdivisions=4, radius=r_outer)
+    i = trimesh.creation.icosphere(subdivisions=4, radius=r_inner)
+    return ShellScene((o.vertices, o.faces), (i.vertices, i.faces))
+
+
+def test_outside_outer_is_the_complement_of_m_plus():
+    """Points of a sphere pair's box: outside M+ (radius 0.5) exactly where |x| > 0.5; the
+    band (0.3 < |x| < 0.5) and M- (|x| < 0.3) are inside. Points within 0.02 of a sphere are
+    left out (the icosphere's chords lie up to 0.002 inside the sphere)."""
+    from shells.train.stage2 import outside_outer
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(20000, 3, generator=g) * 1.6 - 0.8
+    r = x.norm(dim=-1)
+    x = x[((r - 0.5).abs() > 0.02) & ((r - 0.3).abs() > 0.02)]
+    r = x.norm(dim=-1)
+    out = outside_outer(_sphere_scene(), x)
+    assert torch.equal(out, r > 0.5)
+    assert (r < 0.3).sum() > 100 and ((r > 0.3) & (r < 0.5)).sum() > 100  # all three drawn
+
+
+def test_anchor_holds_the_field_outside_m_plus_only():
+    """The anchor is 0 for the stage-1 field itself; a field whose kernel and SDF moved gives
+    |log ratio of s| + |shift of f| / the box's side, hand-worked; its gradient reaches the
+    field and not the frozen stage-1 copy; with M+ filling the box nothing is anchored."""
+    import copy
+
+    from shells.config import FieldConfig
+    from shells.fields.network import ShellField
+    from shells.train.stage2 import anchor_loss
+
+    torch.manual_seed(0)
+    field = ShellField(FieldConfig(n_levels=4, log2_hashmap_size=12, max_resolution=64),
+                       torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    stage1 = copy.deepcopy(field).requires_grad_(False)
+    scene = _sphere_scene()
+    gen = lambda: torch.Generator().manual_seed(3)  # noqa: E731
+    assert anchor_loss(field, stage1, scene, 4096, gen()).item() == 0.0
+
+    class Moved(torch.nn.Module):  # f + 0.2, s x 2 (log 2), everything else the same
+        def __init__(self, base):
+            super().__init__()
+            self.base, self.aabb, self.similarity = base, base.aabb, None
+            self.shift = torch.nn.Parameter(torch.tensor(0.2))
+
+        def geometry(self, x):
+            g = dict(self.base.geometry(x))
+            g["sdf"], g["s"] = g["sdf"] + self.shift, g["s"] * 2.0
+            return g
+
+    moved = Moved(field)
+    loss = anchor_loss(moved, stage1, scene, 4096, gen())
+    assert loss.item() == pytest.approx(torch.log(torch.tensor(2.0)).item() + 0.2 / 2.0,
+                                        rel=1e-5)
+    loss.backward()
+    assert moved.shift.grad.item() == pytest.approx(1.0 / 2.0)  # d|f - f1| / side
+    assert all(p.grad is None for p in stage1.parameters())
+    big = _sphere_scene(r_outer=5.0, r_inner=0.1)  # M+ holds the whole box
+    assert anchor_loss(moved, stage1, big, 4096, gen()).item() == 0.0
+
+
+def test_anchor_points_of_an_unbounded_field_map_back_to_field_space():
+    """An unbounded field's anchor points: the world points map to the drawn field-space
+    points (W(x) = z), and none lies at contracted radius 1.99 or beyond."""
+    from shells.config import FieldConfig
+    from shells.fields.network import ShellField
+    from shells.train.stage2 import MAX_CONTRACTED, anchor_points
+
+    cfg = FieldConfig(n_levels=4, log2_hashmap_size=12, max_resolution=64, unbounded=True,
+                      centre=(0.5, 0.0, -0.5), radius=2.0)
+    c, r = torch.tensor(cfg.centre), cfg.radius
+    field = ShellField(cfg, torch.stack([c - 2 * r, c + 2 * r]))
+    z, x = anchor_points(field, 5000, torch.Generator().manual_seed(0))
+    assert 2400 < len(z) < 2800  # kept: the ball of 1.99 in the cube of 2, 51.6 %
+    assert ((z - c).norm(dim=-1) / r).max() < MAX_CONTRACTED
+    assert torch.allclose(field.to_field(x), z, atol=1e-4)
+    assert ((x - c).norm(dim=-1) / r).max() > 5.0  # far points are far in the world
+
+
+def test_anchor_keeps_the_kernel_outside_m_plus(stage1_run, tmp_path):
+    """Stage 2 with and without the anchor from the same stage-1 field: with it, the field
+    outside M+ stays nearer its stage-1 values."""
+    from shells.run import RunDir, load_shells
+    from shells.train.stage2 import anchor_loss
+
+    dev = {}
+    for w in (0.0, 10.0):
+        run = _copy_run(stage1_run, tmp_path / f"w{w}")
+        (run / "w.json").write_text(json.dumps({"finetune": {"anchor_weight": w, "iters": 30,
+                                                             "lr": 3e-2}}))
+        finetune(run, progress=False, config=run / "w.json")
+        f1, _ = load_field(run, stage="stage1")
+        f2, _ = load_field(run, stage="stage2")
+        scene = load_shells(RunDir(run), None)
+        with torch.no_grad():
+            dev[w] = anchor_loss(f2, f1, scene, 20000, torch.Generator().manual_seed(9)).item()
+    assert dev[0.0] > 0 and dev[10.0] < 0.5 * dev[0.0]

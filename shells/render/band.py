@@ -30,8 +30,12 @@ def render_band_rays(field: torch.nn.Module,  # ShellField: field(x, d) -> sdf, 
                      dirs: torch.Tensor,  # [R, 3] unit
                      cfg: RenderConfig,
                      background: torch.Tensor,  # [3]
+                     extra: torch.Tensor | None = None,  # [A, 3] world points
                      ) -> dict[str, torch.Tensor]:
-    """color [R, 3], opacity [R] (of the band samples) and spp [R] (samples per ray)."""
+    """color [R, 3], opacity [R] (of the band samples) and spp [R] (samples per ray); with
+    ``extra``, also the field's ``extra_sdf`` and ``extra_s`` [A] at those points, evaluated
+    in the samples' batch: one hash-grid lookup, so one gradient scatter into the table
+    (a second call would make a second, into its own zeroed table-sized buffer)."""
     t, delta, mask, solid = band_samples(scene, origins, dirs, cfg,  # [R, S] x 3, [R]
                                          field_warp(field))
     dev, dtype = origins.device, origins.dtype
@@ -45,15 +49,23 @@ def render_band_rays(field: torch.nn.Module,  # ShellField: field(x, d) -> sdf, 
     s = torch.ones(R, S, device=dev, dtype=dtype)
     cos = torch.zeros(R, S, device=dev, dtype=dtype)
     rgb = torch.zeros(R, S, 3, device=dev, dtype=dtype)
-    if mask.any():
-        out = field(pts[mask], d[mask])
-        sdf = sdf.masked_scatter(mask, out["sdf"])
-        s = s.masked_scatter(mask, out["s"])
-        cos = cos.masked_scatter(mask, (out["normal"] * d[mask]).sum(-1))
-        rgb = rgb.masked_scatter(mask[..., None].expand(R, S, 3), out["rgb"])
+    res = {}
+    if mask.any() or extra is not None:
+        x, dx = pts[mask], d[mask]
+        n = len(x)
+        if extra is not None:  # any direction: their colour is not used
+            x = torch.cat([x, extra.to(dev, dtype)])
+            dx = torch.cat([dx, dirs[:1].expand(len(extra), 3)])
+        out = field(x, dx)
+        if extra is not None:
+            res = {"extra_sdf": out["sdf"][n:], "extra_s": out["s"][n:]}
+        sdf = sdf.masked_scatter(mask, out["sdf"][:n])
+        s = s.masked_scatter(mask, out["s"][:n])
+        cos = cos.masked_scatter(mask, (out["normal"][:n] * d[mask]).sum(-1))
+        rgb = rgb.masked_scatter(mask[..., None].expand(R, S, 3), out["rgb"][:n])
     alpha = neus_alpha(sdf, s, cos, delta) * mask
     # the solid-end rule: a solid ray's remaining transmittance ends on its last sample
     last = rgb[torch.arange(R, device=dev), (mask.sum(-1) - 1).clamp_min(0)]  # [R, 3]
     end = torch.where(solid[:, None], last, background.to(dev, dtype).expand(R, 3))
     color, _, opacity = composite(alpha, rgb, end)
-    return {"color": color, "opacity": opacity, "spp": mask.sum(-1)}
+    return {"color": color, "opacity": opacity, "spp": mask.sum(-1), **res}
