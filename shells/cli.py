@@ -332,7 +332,8 @@ def _extract(args: argparse.Namespace) -> int:
 
 
 def _finetune_args(p: argparse.ArgumentParser) -> None:
-    """Stage 2: fine-tune the field inside the narrow band (colour loss only)."""
+    """Stage 2: fine-tune the field inside the narrow band (colour loss; the field outside
+    M+ held at its stage-1 values)."""
     p.add_argument("run", help="run directory with a checkpoint and shells")
     p.add_argument("--iters", type=int, default=None, help="fine-tuning steps")
     p.add_argument("--resume", action="store_true",

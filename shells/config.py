@@ -236,7 +236,7 @@ class RenderConfig:
 
 @dataclass
 class FinetuneConfig:
-    """Stage-2 fine-tuning inside the band, colour loss only (§3.5)."""
+    """Stage-2 fine-tuning inside the band (§3.5): colour loss, and the anchor outside M+."""
 
     iters: int = 2000  # optimisation steps
     batch_rays: int = 4096  # rays per step

@@ -1,5 +1,5 @@
 """Stage 2: fine-tuning inside the fixed shells (kill/resume determinism, shells untouched,
-the renderer's sampling, colour loss only)."""
+the renderer's sampling, the anchor outside M+)."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def test_finetune_kill_resume_matches_and_keeps_shells(stage1_run, tmp_path):
     summary = finetune(a, progress=False)
     assert summary["step"] == 6 and (a / "finetune_summary.json").is_file()
     assert {p.name: _digest(p) for p in (a / "shells").glob("*.ply")} == shells_before
-    # the field did change, and only through the colour loss inside the band
+    # the field did change
     f1, _ = load_field(a, stage="stage1")
     f2, _ = load_field(a, stage="stage2")
     changed = [n for (n, p1), (_, p2) in zip(f1.state_dict().items(), f2.state_dict().items())

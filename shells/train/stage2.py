@@ -1,16 +1,16 @@
-"""Stage 2: fine-tune the field inside the narrow band, colour loss only (§3.5, Procedure 4).
+"""Stage 2: fine-tune the field inside the narrow band (§3.5, Procedure 4).
 
 Rays are cast against the fixed shells and rendered by the differentiable torch band renderer
 (`shells.render.band.render_band_rays`: the Dr.Jit renderer's ray casting, sample placement
-and solid-end rule), and the field is trained with the colour loss alone (L1 unless
-`finetune.color_loss` says "l2"), plus the anchor (`anchor_loss`): the colour loss reaches the
-field only in the band, and the hash tables and MLPs it moves are shared with the space outside
-M+, where the kernel size otherwise drifts (a lego 800^2 field after 20 000 steps: s 2.6x its
-stage-1 value at the median, an occupancy grid 2.7x as full, floaters in every renderer but the
-band's); the anchor holds f and s there at the stage-1 field's values. The steps run in `shells.train.loop.optimise`; the checkpoint
-goes to RUN/finetune.pt (stage 1's checkpoint.pt is left untouched), with resume. Runs on the
-CPU (llvm_ad_rgb) or on CUDA (cuda_ad_rgb): the Mitsuba variant follows the torch device
-unless `render.variant` names one.
+and solid-end rule), and the field is trained with the colour loss (L1 unless
+`finetune.color_loss` says "l2") and the anchor (`anchor_term`). The colour loss reaches the
+field only in the band, but the hash tables and MLPs it moves are shared with the space
+outside M+, where the kernel size then drifts (floaters in every renderer but the band's;
+BENCHMARKS.md, lego 800x800); the anchor holds f and s outside M+ at the stage-1 field's
+values. The steps run in `shells.train.loop.optimise`; the checkpoint goes to RUN/finetune.pt
+(stage 1's checkpoint.pt is left untouched), with resume. Runs on the CPU (llvm_ad_rgb) or on
+CUDA (cuda_ad_rgb): the Mitsuba variant follows the torch device unless `render.variant` names
+one.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from shells.device import mitsuba_variant, torch_device
 from shells.errors import InputError
 from shells.files import write_json
 from shells.fields.contraction import uncontract
+from shells.fields.hashgrid import HashGrid
 from shells.fields.network import ShellField
 from shells.train.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
 from shells.render.band import render_band_rays
@@ -161,6 +162,9 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
     w = join(cfg, "finetune", ckpt is None, dev)
     fc, rc = cfg.finetune, cfg.render
     stage1.requires_grad_(False)
+    for m in stage1.modules():  # a step's few anchor points: torch's lookup takes a third of
+        if isinstance(m, HashGrid):  # the time of Dr.Jit's launch (BENCHMARKS.md)
+            m.inference = "torch"
     if fc.anchor_weight == 0:
         stage1 = None  # not held
     scene = load_shells(run, mitsuba_variant(rc.variant, dev), shells)
