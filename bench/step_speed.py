@@ -4,7 +4,7 @@ sizes, stage 2 against the number of ray shards a step is drawn in (no optimiser
     OMP_NUM_THREADS=1 python -m bench.step_speed stage1 RUN [--data DATA --downscale 8]
                                                  [--sizes [--profile]]
     python -m bench.step_speed stage2 RUN [--shards 1,4,1,8] [--steps 4] [--config X.json]
-                                          [--calling-thread]
+                                          [--calling-thread] [--anchor]
     python -m bench.step_speed allocator RUN [--steps 300] [--rounds 2]
 
 RUN's training split (run.json's data set and downscale unless ``--data`` / ``--downscale``
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import dataclasses
 import sys
 import time
@@ -153,21 +154,27 @@ def stage2(a: argparse.Namespace) -> int:
     `shells.train.loop` does (no optimiser step, so the field stays the same). ``--config``: a
     JSON file with `render` / `finetune` sections overriding the run's. ``--calling-thread``:
     the steps run in `drjit_on_calling_thread` (Dr.Jit's kernels, the shell casts among them,
-    on the calling thread alone), as stage 1 runs its steps. Prints s/step, rays/s and
-    samples/s per shard count as JSON; counts listed twice show the drift of the machine."""
+    on the calling thread alone), as stage 1 runs its steps. ``--anchor``: each shard count
+    is timed without and then with stage 2's anchor (`finetune.anchor_weight`, the frozen
+    stage-1 field: the field itself, so the term is 0 but costs what it costs). Prints s/step,
+    rays/s and samples/s per shard count as JSON; counts listed twice show the drift of the
+    machine."""
     from shells.config import override_config
     from shells.device import mitsuba_variant
     from shells.fields.hashgrid import drjit_on_calling_thread
     from shells.run import load_shells
+    from shells.train.stage2 import frozen
 
     r = open_run(a.run)
     cfg = override_config(r.cfg, a.config, ("finetune", "render"), "bench.step_speed stage2")
     scene = load_shells(r.run, mitsuba_variant(cfg.render.variant, torch.device("cpu")), "fine")
     rows = []
+    stage1s = [None] + ([frozen(copy.deepcopy(r.field))] if a.anchor else [])
     with drjit_on_calling_thread() if a.calling_thread else contextlib.nullcontext():
         for shards in (int(x) for x in a.shards.split(",")):
-            rows.append(time_shards(r.field, scene, r.data, r.pixels, cfg, r.bg, shards,
-                                    a.steps))
+            for stage1 in stage1s:
+                rows.append(time_shards(r.field, scene, r.data, r.pixels, cfg, r.bg, shards,
+                                        a.steps, stage1))
     emit_json({"run": a.run, "batch_rays": cfg.finetune.batch_rays,
                "render": {k: getattr(cfg.render, k) for k in ("dp_max", "w_s", "delta_s",
                                                                "n_max")},
@@ -177,8 +184,9 @@ def stage2(a: argparse.Namespace) -> int:
 
 
 def time_shards(field, scene, data, pixels, cfg, background, shards: int,
-                steps: int) -> dict[str, float]:
-    """One warm-up step, then ``steps`` timed ones of ``shards`` shards."""
+                steps: int, stage1=None) -> dict[str, float]:
+    """One warm-up step, then ``steps`` timed ones of ``shards`` shards (with the anchor
+    against ``stage1`` when given)."""
     from shells.train.stage2 import stage2_step
 
     fc = dataclasses.replace(cfg.finetune, shards=shards)
@@ -188,7 +196,7 @@ def time_shards(field, scene, data, pixels, cfg, background, shards: int,
         n = 0.0
         for _ in range(shards):
             loss, logs = stage2_step(field, scene, data, pixels, fc, cfg.render, background,
-                                     gen)
+                                     gen, stage1)
             (loss / shards).backward()
             n += logs["spp"] * (fc.batch_rays // shards) / fc.pixel_samples
         field.zero_grad(set_to_none=True)
@@ -200,9 +208,11 @@ def time_shards(field, scene, data, pixels, cfg, background, shards: int,
     for _ in range(steps):
         samples += step()
     dt = (time.perf_counter() - t0) / steps
-    print(f"shards {shards}: {dt:.2f} s/step", file=sys.stderr, flush=True)
-    return {"shards": shards, "s_per_step": dt, "rays_per_s": fc.batch_rays / dt,
-            "samples_per_s": samples / steps / dt}
+    anchor = stage1 is not None and fc.anchor_weight > 0
+    print(f"shards {shards}{', anchor' if anchor else ''}: {dt:.3f} s/step", file=sys.stderr,
+          flush=True)
+    return {"shards": shards, "anchor": anchor, "s_per_step": dt,
+            "rays_per_s": fc.batch_rays / dt, "samples_per_s": samples / steps / dt}
 
 
 def allocator(a: argparse.Namespace) -> int:
@@ -265,6 +275,8 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--shards", default="1,4,1,8", help="comma-separated shard counts")
     sp.add_argument("--steps", type=int, default=4, help="timed steps per shard count")
     sp.add_argument("--config", default=None, help="JSON with render / finetune overrides")
+    sp.add_argument("--anchor", action="store_true",
+                    help="time each shard count without and with stage 2's anchor")
     sp.add_argument("--calling-thread", action="store_true",
                     help="Dr.Jit's kernels on the calling thread alone")
     sp = sub["allocator"]

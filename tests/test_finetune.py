@@ -323,3 +323,14 @@ def test_anchor_keeps_the_kernel_outside_m_plus(stage1_run, tmp_path):
         with torch.no_grad():
             dev[w] = anchor_loss(f2, f1, scene, 20000, torch.Generator().manual_seed(9)).item()
     assert dev[0.0] > 0 and dev[10.0] < 0.5 * dev[0.0]
+
+
+def test_step_bench_times_the_anchor(stage1_run, capsys):
+    """`python -m bench.step_speed stage2 RUN --anchor`: each shard count without and with the
+    anchor, in that order."""
+    from bench.step_speed import main
+
+    assert main(["stage2", str(stage1_run), "--shards", "1", "--steps", "1", "--anchor"]) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    assert [(r["shards"], r["anchor"]) for r in rows] == [(1, False), (1, True)]
+    assert all(r["s_per_step"] > 0 for r in rows)

@@ -100,6 +100,16 @@ def anchor_loss(field: ShellField, stage1: ShellField, scene: ShellScene, n: int
     return anchor_term(g["sdf"], g["s"], g1["sdf"], g1["s"], box_side(field))
 
 
+def frozen(stage1: ShellField) -> ShellField:
+    """The stage-1 field as the anchor holds it: no gradients, and hash-grid lookups in torch
+    (a step's few anchor points take a third of the time of Dr.Jit's kernel launch)."""
+    stage1.requires_grad_(False)
+    for m in stage1.modules():
+        if isinstance(m, HashGrid):
+            m.inference = "torch"
+    return stage1
+
+
 def stage2_step(field: ShellField, scene: ShellScene, data: Dataset, pixels: torch.Tensor,
                 fc: FinetuneConfig, rc: RenderConfig, background: torch.Tensor,
                 gen: torch.Generator, stage1: ShellField | None = None,
@@ -161,12 +171,7 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
         cfg.update({"finetune": {"iters": iters}}, "--iters")
     w = join(cfg, "finetune", ckpt is None, dev)
     fc, rc = cfg.finetune, cfg.render
-    stage1.requires_grad_(False)
-    for m in stage1.modules():  # a step's few anchor points: torch's lookup takes a third of
-        if isinstance(m, HashGrid):  # the time of Dr.Jit's launch (BENCHMARKS.md)
-            m.inference = "torch"
-    if fc.anchor_weight == 0:
-        stage1 = None  # not held
+    stage1 = frozen(stage1) if fc.anchor_weight > 0 else None
     scene = load_shells(run, mitsuba_variant(rc.variant, dev), shells)
     data = load_dataset(meta["data"], "train", downscale=int(meta["downscale"]),
                         background=cfg.data.background)
