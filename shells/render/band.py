@@ -55,7 +55,7 @@ def render_band_rays(field: torch.nn.Module,  # ShellField: field(x, d) -> sdf, 
         n = len(x)
         if extra is not None:  # any direction: their colour is not used
             x = torch.cat([x, extra.to(dev, dtype)])
-            dx = torch.cat([dx, dirs[:1].expand(len(extra), 3)])
+            dx = torch.cat([dx, dx.new_tensor([0.0, 0.0, 1.0]).expand(len(extra), 3)])
         out = field(x, dx)
         if extra is not None:
             res = {"extra_sdf": out["sdf"][n:], "extra_s": out["s"][n:]}
