@@ -6,14 +6,16 @@
                                            [--slope normal|ray]
     python -m bench.diagnostics slope RUN [--stage stage1] [--resolution 160]
     python -m bench.diagnostics density RUN [--stage stage1] [--densities 1 2 4]
+    python -m bench.diagnostics drift RUN [--points 400000]
 
 RENDER_DIRs are `shells-render` outputs of RUN's test split (r_###.png). ``error`` and ``ball``
 split the pooled squared error of each render by pixel class (silhouette edge, object,
 background; or rays entering / missing an unbounded run's ball of interest); ``weight`` splits
 the full-ray compositing weight by distance to the level set; ``slope`` prints |grad f| and
 the kernel's world-space width at the level set; ``density`` scores the running curve's
-held-out pixels with the trainer's renderer at several samples per ray. Each subcommand's
---help says more.
+held-out pixels with the trainer's renderer at several samples per ray; ``drift`` compares the
+stage-2 field with the stage-1 field where the band does not sample. Each subcommand's --help
+says more.
 """
 
 from __future__ import annotations
@@ -278,9 +280,41 @@ def density(a: argparse.Namespace) -> int:
     return 0
 
 
+def drift(a: argparse.Namespace) -> int:
+    """How far stage 2 moved the field away from the band: the stage-1 and stage-2 fields (the
+    network alone, field space) at ``--points`` uniform points of the field's box. Prints JSON:
+    the share of the points that pass the occupancy grids' test |f| < h + k s
+    (`may_have_density`; h the half diagonal of a ``render.occ_resolution`` cell, k
+    ``render.occ_k``) for each field, the share that passes for the stage-2 field only, and,
+    at the points the stage-1 field leaves empty, percentiles of s2 / s1 and of f2 - f1."""
+    from shells.fields.neus import may_have_density
+
+    f1, _ = load_field(a.run, stage="stage1")
+    f2, cfg = load_field(a.run, stage="stage2")
+    lo, hi = f1.aabb[0], f1.aabb[1]
+    z = lo + (hi - lo) * torch.rand(a.points, 3, generator=torch.Generator().manual_seed(0))
+    rc = cfg.render
+    h = 0.5 * float((hi - lo).norm()) / rc.occ_resolution
+    g = {}
+    with torch.no_grad():
+        for name, field in (("stage1", f1), ("stage2", f2)):
+            parts = [field.geometry_field(c, far=False) for c in z.split(65536)]
+            g[name] = {k: torch.cat([p[k] for p in parts]).double() for k in ("sdf", "s")}
+    occ = {n: may_have_density(v["sdf"], v["s"], h, rc.occ_k) for n, v in g.items()}
+    empty = ~occ["stage1"]
+    ratio = (g["stage2"]["s"] / g["stage1"]["s"])[empty].numpy()
+    shift = (g["stage2"]["sdf"] - g["stage1"]["sdf"])[empty].numpy()
+    emit_json({"run": a.run, "points": a.points, "h": h, "k": rc.occ_k,
+               "occupied_share": {n: float(o.double().mean()) for n, o in occ.items()},
+               "newly_occupied_share": float((occ["stage2"] & empty).double().mean()),
+               "empty_in_stage1": {"s2_over_s1": _percentiles(ratio),
+                                   "f2_minus_f1": _percentiles(shift)}})
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p, sub = subcommands("python -m bench.diagnostics", __doc__.split("\n\n")[0],
-                         [error, ball, weight, slope, density])
+                         [error, ball, weight, slope, density, drift])
     for name in ("error", "ball"):
         sub[name].add_argument("renders", nargs="+", metavar="RENDER_DIR",
                                help="shells-render outputs of RUN's test split")
@@ -302,6 +336,7 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("--densities", type=int, nargs="+", default=[1, 2, 4],
                     help="multiples of the run's samples a ray (train.eval_density)")
     sp.add_argument("--pixels", type=int, default=16384, help="pixels a curve view")
+    sub["drift"].add_argument("--points", type=int, default=400000)
     sp = sub["slope"]
     sp.add_argument("--resolution", type=int, default=160)
     sp.add_argument("--max-points", type=int, default=200000)

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 FIGURES = ROOT / "docs" / "figures.py"
 SCRIPTS = sorted(p.stem for p in (ROOT / "bench").glob("*.py")
                  if p.stem not in ("__init__", "report"))
-SUBCOMMANDS = {"diagnostics": ["error", "ball", "weight", "slope", "density"],
+SUBCOMMANDS = {"diagnostics": ["error", "ball", "weight", "slope", "density", "drift"],
                "step_speed": ["stage1", "stage2", "allocator"],
                "figures": ["demo", "animation", "curve", "baked"]}
 

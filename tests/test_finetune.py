@@ -334,3 +334,21 @@ def test_step_bench_times_the_anchor(stage1_run, capsys):
     rows = json.loads(capsys.readouterr().out)["rows"]
     assert [(r["shards"], r["anchor"]) for r in rows] == [(1, False), (1, True)]
     assert all(r["s_per_step"] > 0 for r in rows)
+
+
+def test_drift_diagnostic_of_a_stage_2_that_did_not_move(stage1_run, tmp_path, capsys):
+    """`python -m bench.diagnostics drift RUN` on a stage 2 whose learning rates are 1e-12:
+    both fields pass the occupancy test at the same points, none newly, and s2 / s1 = 1,
+    f2 - f1 = 0 where stage 1 is empty."""
+    from bench.diagnostics import main
+
+    run = _copy_run(stage1_run, tmp_path / "still")
+    (run / "still.json").write_text(json.dumps({"finetune": {"lr": 1e-12, "lr_mlp": 1e-12}}))
+    finetune(run, progress=False, config=run / "still.json")
+    assert main(["drift", str(run), "--points", "20000"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    occ = out["occupied_share"]
+    assert 0 < occ["stage1"] < 1 and occ["stage2"] == occ["stage1"]
+    assert out["newly_occupied_share"] == 0
+    ratio, shift = out["empty_in_stage1"]["s2_over_s1"], out["empty_in_stage1"]["f2_minus_f1"]
+    assert all(abs(ratio[k] - 1) < 1e-5 and abs(shift[k]) < 1e-5 for k in ("p5", "p50", "p95"))
