@@ -158,10 +158,9 @@ SHARP_BAND = {"dp_max": 32, "band_ert_eps": 1e-4}
 # steps: 32 + 16 samples over a span of lego at 800^2 lie about 12 kernel sizes apart and
 # under-report its field by 1.4 dB; 64 + 32 come within 0.05 dB of 128 + 64
 SHARP_TRAIN = {"eval_density": 2}
-# ... and its stage 2 sees at least this share of the training pixels' rays: on lego at 800^2
-# steps of 4096 rays drawing 0.74 / 1.47 of them gave the band 30.44 / 30.89 dB (on shells with
-# support_k_inner 1, 0.26 / 0.74 of them: 29.54 / 30.15); at most SHARP_FINETUNE_MAX steps (43 min
-# on 2 cores there)
+# ... and its stage 2 sees at least this share of the training pixels' rays: a sharp field's
+# band keeps gaining with stage-2 steps up to about this share and little past it, up to
+# SHARP_FINETUNE_MAX steps (BENCHMARKS.md, lego 800x800; docs/configuration.md)
 SHARP_FINETUNE_SHARE = 1.5
 SHARP_FINETUNE_MAX = 20_000
 START_RADII = 2.0  # the unbounded object preset's rays start this many radii from the centre
