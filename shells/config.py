@@ -199,10 +199,13 @@ class RenderConfig:
     full_samples: int = 256  # samples per ray in `full` mode (baseline, whole box)
     variant: str | None = None  # Mitsuba variant; None: from the torch device (cuda_ad_rgb on
     # CUDA, llvm_ad_rgb on the CPU)
-    chunk_samples: int = 1 << 24  # rays per batch are limited to this many samples (worst case)
+    chunk_samples: int = 1 << 24  # samples of a batch at most: full and occupancy batches
+    # count their rays' worst case, band batches the samples their rays get after the cast
     memory_mb: int = 1024  # memory budget of the ray batches, MiB: a batch holds as many rays as
-    # fit with their worst-case samples (shells/render/frame.py, rays_per_batch), and a frame
-    # larger than one batch is rendered in tiles of rows, so an 8K frame stays in bounded memory
+    # fit with their worst-case samples, a band batch its rays in half of it and its samples,
+    # shaded in groups of rays, in the other half (shells/render/frame.py, rays_per_batch), and a
+    # frame larger than one batch is rendered in tiles of rows, so an 8K frame stays in bounded
+    # memory
     # `occupancy` mode (Instant-NGP / nerfacc baseline, shells/render/occupancy.py):
     occ_resolution: int = 128  # occupancy-grid cells per axis over the scene box
     occ_k: float = 5.0  # occupied where |f| < half cell diagonal + occ_k * s (residual T < e^-k)

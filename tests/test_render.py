@@ -196,6 +196,44 @@ def test_band_early_termination_differs_by_no_more_than_the_light_left(shells):
     assert spp2[covered].float().mean() < 0.75 * spp[covered].float().mean()
 
 
+def test_band_batches_shade_their_samples_in_groups_within_the_budget(shells, monkeypatch):
+    # A band batch holds its rays, not their worst-case samples; samples beyond the budget are
+    # placed and shaded in consecutive groups of rays. With a budget of 100 samples the 32 x 32
+    # frame (measured: about 5 samples per covered pixel, 2600 in all) takes dozens of groups,
+    # every one within the budget unless a single ray has more, and gives the one-batch image
+    # and counts bit for bit; so do the refinement's extras (opacity, normal).
+    import shells.render.frame as frame
+    from shells.render.frame import ray_groups, render_intervals
+    from shells.render.raycast import to_point3f
+
+    # 3 + 0 + 4 = 7 fits; 5 + 9 does not; 9 > 7 alone; then 1
+    assert ray_groups(mi.UInt32([3, 0, 4, 5, 9, 1]), 7) == [(0, 3), (3, 4), (4, 5), (5, 6)]
+    assert ray_groups(mi.UInt32([1, 1, 1, 1]), 100) == [(0, 4)]
+    o, d = camera_rays(32, 32)
+    cfg = RenderConfig()
+    whole, spp = render_image(SphereField(), o, d, 32, 32, cfg, "band", scene=shells)
+    iv = shells.intervals(o, d, cfg.dp_max)
+    O, D = to_point3f(o), to_point3f(d, mi.Vector3f)
+    ref = render_intervals(SphereField(), O, D, iv, cfg, extras=True)
+    seen = []
+    place = frame.place_packed
+
+    def counting(iv, cfg, **kw):
+        samples = place(iv, cfg, **kw)
+        seen.append(int(dr.sum(samples.count)[0]))
+        return samples
+
+    monkeypatch.setattr(frame, "place_packed", counting)
+    monkeypatch.setattr(frame, "sample_budget", lambda cfg: 100)
+    grouped, spp2 = render_image(SphereField(), o, d, 32, 32, cfg, "band", scene=shells)
+    assert len(seen) > 20 and max(seen) <= 100 and sum(seen) == int(spp.sum()) > 2000
+    assert torch.equal(grouped, whole) and torch.equal(spp2, spp)
+    got = render_intervals(SphereField(), O, D, iv, cfg, extras=True)
+    for a, b in zip(got, ref):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    assert float(dr.max(got[2])[0]) == 1.0  # opaque rays: the extras are not all zero
+
+
 def test_spp_averages_the_sub_pixel_rays(shells):
     # cfg.spp = 4: a pixel's colour is the mean of its 4 rays and its sample count their sum,
     # exactly as four separate one-ray renders of the same rays

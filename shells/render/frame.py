@@ -34,6 +34,7 @@ from typing import Any
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 import torch
 
 from shells.config import RenderConfig
@@ -41,26 +42,56 @@ from shells.errors import InputError
 from shells.render.occupancy import render_occupancy
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import (PackedSamples, far_intervals, field_warp, place_packed,
-                                  shell_intervals)
+                                  ray_sample_counts, shell_intervals)
 from shells.render.shading import WHITE, composite_packed, end_colour, shade_samples
 
 MODES = ("band", "full", "occupancy", "baked")
 BYTES_PER_RAY = 512  # Dr.Jit and torch memory of a ray in a batch (origin, direction, shell
 # hits, colour, counts), besides its samples; an upper estimate
+BYTES_PER_SLOT = 16  # memory of one interval slot of a band ray (entry, exit, its sample count)
 BYTES_PER_SAMPLE = 96  # memory of one field sample (position, direction, t, section, ray
 # index, SDF, kernel, normal, colour, alpha); an upper estimate
 
 
 def rays_per_batch(cfg: RenderConfig, mode: str) -> int:
-    """Rays rendered at once: whole pixels (a multiple of cfg.spp) whose worst-case samples
-    fit both cfg.chunk_samples and the memory budget cfg.memory_mb."""
+    """Rays rendered at once: whole pixels (a multiple of cfg.spp) in the budgets
+    cfg.chunk_samples and cfg.memory_mb.
+
+    Full, occupancy and baked batches hold each ray with its worst-case samples. A band batch
+    holds its rays and their interval slots in half the memory budget; its samples are counted
+    after the cast and shaded in groups of rays that fit the other half (`sample_budget`):
+    Procedure 3's worst case (n_max samples in each of dp_max / 2 intervals) is a hundred times
+    what a frame's rays take, and small batches cost a band frame its speed (each field
+    evaluation has a fixed cost)."""
     K = cfg.spp
+    if mode == "band":
+        per_ray = BYTES_PER_RAY + ((cfg.dp_max + 1) // 2) * BYTES_PER_SLOT
+        return max(1, ((cfg.memory_mb << 20) // 2) // (K * per_ray)) * K
     per_ray = {"full": cfg.full_samples,  # occupancy: samples held per live ray and round
                "occupancy": cfg.occ_chunk,  # baked: no samples; a layer's hit and attributes
-               "baked": 4}.get(mode, ((cfg.dp_max + 1) // 2) * cfg.n_max)
+               "baked": 4}[mode]
     by_samples = cfg.chunk_samples // max(per_ray * K, 1)
     by_memory = (cfg.memory_mb << 20) // (K * (BYTES_PER_RAY + per_ray * BYTES_PER_SAMPLE))
     return max(1, min(by_samples, by_memory)) * K
+
+
+def sample_budget(cfg: RenderConfig) -> int:
+    """Samples a band batch places and shades at once: cfg.chunk_samples, and at most half of
+    cfg.memory_mb (the rays have the other half, `rays_per_batch`)."""
+    return max(1, min(cfg.chunk_samples, ((cfg.memory_mb << 20) // 2) // BYTES_PER_SAMPLE))
+
+
+def ray_groups(counts: Any,  # mi.UInt32 [R] samples of each ray
+               budget: int) -> list[tuple[int, int]]:
+    """Consecutive ray ranges [a, b) whose samples add up to at most ``budget`` each (a ray
+    with more samples than that is a group of its own)."""
+    total = np.cumsum(np.asarray(counts, dtype=np.int64))
+    groups, a, base = [], 0, 0
+    while a < len(total):
+        b = max(int(np.searchsorted(total, base + budget, side="right")), a + 1)
+        groups.append((a, b))
+        a, base = b, int(total[b - 1])
+    return groups
 
 
 def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
@@ -110,9 +141,14 @@ def render_intervals(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
     samples per ray mi.UInt32 [R]; with ``extras`` also the opacity mi.Float [R] (1 on rays
     that end solid) and the weight-averaged field normal mi.Vector3f [R] (not normalised; 0
     without samples), which the adaptive refinement (`shells.render.refine`) compares."""
-    samples = place_packed(iv, cfg, fixed=fixed, warp=field_warp(field), o=o, d=d)
+    warp, n = field_warp(field), dr.width(d)
+    if fixed is None and n > 1:  # a band batch: its samples are known only now
+        counts = ray_sample_counts(iv, cfg, None, warp, o, d)
+        if int(dr.sum(counts)[0]) > sample_budget(cfg):
+            return _render_groups(field, o, d, iv, cfg, background, extras,
+                                  ray_groups(counts, sample_budget(cfg)))
+    samples = place_packed(iv, cfg, fixed=fixed, warp=warp, o=o, d=d)
     bg = mi.Color3f(*[float(c) for c in background])
-    n = dr.width(d)
     if samples.size == 0:
         out = (dr.zeros(mi.Color3f, n) + bg, samples.count)
         return out + ((dr.zeros(mi.Float, n), dr.zeros(mi.Vector3f, n)) if extras else ())
@@ -131,6 +167,25 @@ def render_intervals(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
         opacity = dr.select(samples.solid, 1.0, opacity)
     dr.eval(colour, samples.count, opacity, normal)
     return colour, samples.count, opacity, mi.Vector3f(normal)
+
+
+def _render_groups(field: Any, o: Any, d: Any, iv: Any, cfg: RenderConfig,
+                   background: tuple[float, float, float], extras: bool,
+                   groups: list[tuple[int, int]]) -> tuple[Any, ...]:
+    """`render_intervals` of each group of rays [a, b), its outputs put back in ray order."""
+    n = dr.width(d)
+    outs = None
+    for a, b in groups:
+        idx = dr.arange(mi.UInt32, a, b)
+        part = render_intervals(field, dr.gather(mi.Point3f, o, idx),
+                                dr.gather(mi.Vector3f, d, idx), iv.rows(a, b), cfg, background,
+                                extras=extras)
+        if outs is None:
+            outs = tuple(dr.zeros(type(x), n) for x in part)
+        for out, x in zip(outs, part):
+            dr.scatter(out, x, idx)
+        dr.eval(outs)
+    return outs
 
 
 def _composite_rounds(field: Any, samples: PackedSamples, o: Any, d: Any,

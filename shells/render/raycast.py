@@ -70,6 +70,16 @@ class Intervals:
         return cls(enter=mi.TensorXf(e), exit=mi.TensorXf(x), count=tensor_xi()(c),
                    t_inner=mi.TensorXf(ti))
 
+    def rows(self, a: int, b: int) -> "Intervals":
+        """The intervals of rays a..b-1."""
+        n, K = b - a, self.K
+        slots, rays = dr.arange(mi.UInt32, a * K, b * K), dr.arange(mi.UInt32, a, b)
+        count = self.count.array
+        return Intervals(enter=mi.TensorXf(dr.gather(mi.Float, self.enter.array, slots), (n, K)),
+                         exit=mi.TensorXf(dr.gather(mi.Float, self.exit.array, slots), (n, K)),
+                         count=tensor_xi()(dr.gather(type(count), count, rays), (n,)),
+                         t_inner=mi.TensorXf(dr.gather(mi.Float, self.t_inner.array, rays), (n,)))
+
     def torch(self) -> dict[str, torch.Tensor]:
         """Zero-copy torch views: enter/exit [R, K] float32, count [R] int32, t_inner [R]."""
         return {"enter": self.enter.torch(), "exit": self.exit.torch(),

@@ -209,6 +209,17 @@ def place_packed(iv: Intervals, cfg: RenderConfig,
                          max_count=max_count, solid=solid_end(iv.t_inner.array, per_ray))
 
 
+def ray_sample_counts(iv: Intervals, cfg: RenderConfig,
+                      fixed: int | None = None, warp: Warp | None = None, o: Any = None,
+                      d: Any = None) -> Any:  # mi.UInt32 [R]
+    """How many samples `place_packed` gives each ray, without placing them (the renderer
+    sizes its groups of rays by them)."""
+    enter, exit_, _ = _warped_ends(iv, o, d, warp)
+    per_ray = _per_interval_counts(iv, enter, exit_, cfg, fixed)[1]
+    dr.eval(per_ray)
+    return per_ray
+
+
 def place_padded(iv: Intervals, cfg: RenderConfig, warp: Warp | None = None, o: Any = None,
                  d: Any = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Padded torch layout: t [R, S], delta [R, S], mask [R, S] bool, solid [R] bool
