@@ -14,15 +14,18 @@ renderer. Conventions:
 * M- (inner shell) is solid: peeling stops at its first hit and an open interval is closed there.
 * At most ``dp_max`` M+ hits are peeled (depth-peeling budget); an interval still open when the
   budget runs out, or when the ray leaves the scene (a non-watertight M+), is dropped.
-* The next peel starts from ``si.spawn_ray(d)``, offset by ~1e-4 relative to |p|: shell sheets
-  closer together than that along a ray can be skipped (irrelevant at marching-cubes spacing).
+* The next peel starts from the hit moved off its triangle, to the far side along the face
+  normal, by (1 + max|p|) 1500 eps (Mitsuba's ``spawn_ray`` offset): shell sheets closer together
+  than that along a ray can be skipped (irrelevant at marching-cubes spacing).
 
 Depth peeling is one symbolic Dr.Jit loop (``@dr.syntax``); every iteration casts the rays that
 are still active against a single Mitsuba scene holding both shells and scatters closed intervals
-into an [R, K] buffer. On the CPU (llvm_ad_rgb) the symbolic loop and the evaluated one (one
-kernel per peel, like a Python loop) run equally fast, as Embree's ray casts dominate; the
-symbolic loop needs no host round trip per peel (``mode='evaluated'`` runs the same code the
-other way).
+into an [R, K] buffer. A cast asks for the preliminary intersection only (distance, shape,
+triangle) and gathers the triangle's normal from a table made once per mesh: 10-15 % faster than
+a full intersection record on lego's 3.4 M-triangle M+. On the CPU (llvm_ad_rgb) the symbolic
+loop and the evaluated one (one kernel per peel, like a Python loop) run equally fast, as
+Embree's ray casts dominate; the symbolic loop needs no host round trip per peel
+(``mode='evaluated'`` runs the same code the other way).
 """
 
 from __future__ import annotations
@@ -161,6 +164,12 @@ class ShellScene:
             shapes["inner"] = self.inner
         self.scene = mi.load_dict(shapes)
         self._outer_ptr = mi.ShapePtr(self.outer)
+        self._set_normals()
+
+    def _set_normals(self) -> None:
+        """The unit face normals of each shell, which the peel gathers at its hits."""
+        self._normals_outer = face_normals(self.outer)
+        self._normals_inner = face_normals(self.inner) if self.has_inner else None
 
     def move(self, outer: np.ndarray,  # [n, 3] new M+ vertex positions, same faces
              inner: np.ndarray | None = None,  # [k, 3] new M- vertex positions
@@ -177,6 +186,7 @@ class ShellScene:
                                  f"{mesh.vertex_count()} vertices")
             params[f"{mesh.id()}.vertex_positions"] = mi.Float(V.ravel())
         params.update()
+        self._set_normals()
 
     def first_hit(self, origins: Any, dirs: Any, start: Any = None) -> tuple[Any, Any]:
         """Distance (inf: no hit) and unit geometric normal of each ray's first hit on either
@@ -212,7 +222,9 @@ class ShellScene:
         enter = dr.zeros(mi.Float, n * K)
         exit_ = dr.zeros(mi.Float, n * K)
         o0, t0 = (o, mi.Float(0.0)) if start is None else (o + start * d, mi.Float(start))
-        count, t_inner = _peel(self.scene, self._outer_ptr, o, d, enter, exit_,
+        normals = (self._normals_outer,
+                   self._normals_inner if self.has_inner else self._normals_outer)
+        count, t_inner = _peel(self.scene, self._outer_ptr, normals, o, d, enter, exit_,
                                K, dp_max, mode, o0, t0)
         dr.eval(enter, exit_, count, t_inner)
         return Intervals(enter=mi.TensorXf(enter, (n, K)), exit=mi.TensorXf(exit_, (n, K)),
@@ -220,14 +232,27 @@ class ShellScene:
                          t_inner=mi.TensorXf(t_inner, (n,)))
 
 
+def face_normals(mesh: "mi.Mesh") -> Any:
+    """Unit geometric normal of each triangle of a Mitsuba mesh, as Mitsuba orients it: (p1 -
+    p0) x (p2 - p0); flat (mi.Float [3 faces], x y z of each), for `dr.gather`."""
+    p = mi.traverse(mesh)
+    V = dr.unravel(mi.Point3f, p["vertex_positions"])
+    F = dr.unravel(mi.Vector3u, p["faces"])
+    a, b, c = (dr.gather(mi.Point3f, V, F[i]) for i in range(3))
+    n = dr.ravel(dr.normalize(dr.cross(b - a, c - a)))
+    dr.eval(n)
+    return n
+
+
 @dr.syntax
-def _peel(scene: "mi.Scene", outer_ptr: Any, o: Any, d: Any, enter: Any, exit_: Any,
-          K: int, dp_max: int, mode: str, o0: Any, t0: Any) -> tuple[Any, Any]:
+def _peel(scene: "mi.Scene", outer_ptr: Any, normals: tuple[Any, Any], o: Any, d: Any,
+          enter: Any, exit_: Any, K: int, dp_max: int, mode: str, o0: Any, t0: Any
+          ) -> tuple[Any, Any]:
     """Depth-peel the scene from o0 = o + t0 d; scatter closed intervals (distances from o)
-    into enter/exit [R * K] in place."""
+    into enter/exit [R * K] in place. ``normals``: the face normals of M+ and of M-."""
     n = dr.width(d)
     row = dr.arange(mi.UInt32, n) * K
-    ray = mi.Ray3f(o0, d)
+    ray_o = mi.Point3f(o0)
     active = mi.Bool(True)  # still peeling
     hits = mi.UInt32(0)  # M+ hits consumed so far (<= dp_max)
     count = mi.UInt32(0)  # closed intervals written for this ray
@@ -236,12 +261,16 @@ def _peel(scene: "mi.Scene", outer_ptr: Any, o: Any, d: Any, enter: Any, exit_: 
     t_prev = mi.Float(t0)  # distance of the previous M+ hit (the cast's start before the first)
     t_inner = mi.Float(dr.inf)  # first M- hit
     while dr.hint(active, mode=mode, max_iterations=-1, label="shell_peel"):
-        si = scene.ray_intersect(ray, mi.RayFlags.Minimal, False)
-        valid = si.is_valid()
-        t = dr.dot(si.p - o, d)
-        is_outer = valid & (si.shape == outer_ptr)
+        pi = scene.ray_intersect_preliminary(mi.Ray3f(ray_o, d), False)
+        valid = pi.is_valid()
+        is_outer = valid & (pi.shape == outer_ptr)
         is_inner = valid & ~is_outer
-        entering = dr.dot(d, si.n) < 0
+        normal = dr.select(is_outer, dr.gather(mi.Vector3f, normals[0], pi.prim_index, is_outer),
+                           dr.gather(mi.Vector3f, normals[1], pi.prim_index, is_inner))
+        p = dr.fma(d, pi.t, ray_o)
+        t = dr.dot(p - o, d)
+        cos = dr.dot(d, normal)
+        entering = cos < 0
 
         # An exit while not inside means the ray started inside M+ (or a missed entry):
         # the interval then starts at the previous hit, the origin for the first one.
@@ -259,5 +288,6 @@ def _peel(scene: "mi.Scene", outer_ptr: Any, o: Any, d: Any, enter: Any, exit_: 
         hits = dr.select(is_outer, hits + 1, hits)
         t_prev = dr.select(is_outer, t, t_prev)
         active = is_outer & (hits < dp_max)
-        ray = si.spawn_ray(d)
+        offset = (1.0 + dr.max(dr.abs(p))) * (1500.0 * dr.epsilon(mi.Float))
+        ray_o = dr.fma(normal, dr.select(cos >= 0, offset, -offset), p)
     return count, t_inner
