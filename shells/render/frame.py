@@ -60,9 +60,9 @@ def rays_per_batch(cfg: RenderConfig, mode: str) -> int:
     Full, occupancy and baked batches hold each ray with its worst-case samples. A band batch
     holds its rays and their interval slots in half the memory budget; its samples are counted
     after the cast and shaded in groups of rays that fit the other half (`sample_budget`):
-    Procedure 3's worst case (n_max samples in each of dp_max / 2 intervals) is a hundred times
-    what a frame's rays take, and small batches cost a band frame its speed (each field
-    evaluation has a fixed cost)."""
+    Procedure 3's worst case (n_max samples in each of dp_max / 2 intervals) is far more than
+    a frame's rays take, and small batches cost a band frame its speed (each field evaluation
+    has a fixed cost)."""
     K = cfg.spp
     if mode == "band":
         per_ray = BYTES_PER_RAY + ((cfg.dp_max + 1) // 2) * BYTES_PER_SLOT

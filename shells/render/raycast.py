@@ -21,11 +21,11 @@ renderer. Conventions:
 Depth peeling is one symbolic Dr.Jit loop (``@dr.syntax``); every iteration casts the rays that
 are still active against a single Mitsuba scene holding both shells and scatters closed intervals
 into an [R, K] buffer. A cast asks for the preliminary intersection only (distance, shape,
-triangle) and gathers the triangle's normal from a table made once per mesh: 10-15 % faster than
-a full intersection record on lego's 3.4 M-triangle M+. On the CPU (llvm_ad_rgb) the symbolic
-loop and the evaluated one (one kernel per peel, like a Python loop) run equally fast, as
-Embree's ray casts dominate; the symbolic loop needs no host round trip per peel
-(``mode='evaluated'`` runs the same code the other way).
+triangle) and gathers the triangle's normal from a table made once per mesh, which costs less
+than a full intersection record (position and frame from the triangle's vertices). On the CPU
+(llvm_ad_rgb) the symbolic loop and the evaluated one (one kernel per peel, like a Python loop)
+run equally fast, as Embree's ray casts dominate; the symbolic loop needs no host round trip per
+peel (``mode='evaluated'`` runs the same code the other way).
 """
 
 from __future__ import annotations
