@@ -163,14 +163,13 @@ def weight(a: argparse.Namespace) -> int:
     grid and the band renderer cannot see. Prints the shares as JSON; for an unbounded field
     also inside (share_ball) and outside (share_outside) the ball of interest; by_s and by_f
     split the weight by the kernel size s and by f (bins S_EDGES, F_EDGES)."""
-    from shells.fields.neus import may_have_density
+    from shells.fields.neus import half_cell_diagonal, may_have_density
     from shells.render.volume import render_volume_rays
 
     run = RunDir(a.run)
     field, cfg = load_field(run.root, stage=a.stage)
     data = test_views(run, cfg.data.background)
-    box = field.aabb
-    h = 0.5 * float((box[1] - box[0]).norm()) / cfg.render.occ_resolution
+    h = half_cell_diagonal(field.aabb, cfg.render.occ_resolution)
     k = cfg.render.occ_k
     bg = torch.tensor(cfg.data.background)
     names = ("near_level_set", "inside_far", "outside_far")
@@ -287,14 +286,14 @@ def drift(a: argparse.Namespace) -> int:
     (`may_have_density`; h the half diagonal of a ``render.occ_resolution`` cell, k
     ``render.occ_k``) for each field, the share that passes for the stage-2 field only, and,
     at the points the stage-1 field leaves empty, percentiles of s2 / s1 and of f2 - f1."""
-    from shells.fields.neus import may_have_density
+    from shells.fields.neus import half_cell_diagonal, may_have_density
 
     f1, _ = load_field(a.run, stage="stage1")
     f2, cfg = load_field(a.run, stage="stage2")
     lo, hi = f1.aabb[0], f1.aabb[1]
     z = lo + (hi - lo) * torch.rand(a.points, 3, generator=torch.Generator().manual_seed(0))
     rc = cfg.render
-    h = 0.5 * float((hi - lo).norm()) / rc.occ_resolution
+    h = half_cell_diagonal(f1.aabb, rc.occ_resolution)
     g = {}
     with torch.no_grad():
         for name, field in (("stage1", f1), ("stage2", f2)):

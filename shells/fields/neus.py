@@ -69,6 +69,13 @@ def may_have_density(f: torch.Tensor, s: torch.Tensor, h: float, k: float) -> to
     return f.abs() < h + k * s
 
 
+def half_cell_diagonal(box: torch.Tensor,  # [2, 3] (min, max)
+                       resolution: int) -> float:
+    """Half the diagonal of one cell of a ``resolution``^3 grid over ``box``: the h of
+    `may_have_density`."""
+    return 0.5 * float((box[1] - box[0]).norm()) / resolution
+
+
 def _ops(x):
     return _TorchOps if isinstance(x, torch.Tensor) else _DrJitOps
 

@@ -72,7 +72,7 @@ import torch
 from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.fields.drjit_field import contract_point
-from shells.fields.neus import may_have_density
+from shells.fields.neus import half_cell_diagonal, may_have_density
 from shells.levelset.grid import check_aabb
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import PackedSamples, field_warp
@@ -140,7 +140,7 @@ def build_occupancy_grid(field: Any,  # Dr.Jit field: eval_geometry(x) or eval(x
     box = _box(aabb)
     N = int(resolution)
     cell = (box[1] - box[0]) / N  # [3]
-    h = 0.5 * float(torch.linalg.norm(cell))  # half cell diagonal
+    h = half_cell_diagonal(box, N)
     gen = torch.Generator().manual_seed(seed)
     occ = torch.zeros(N ** 3, dtype=torch.bool)  # flat (ix * N + iy) * N + iz
     for a in range(0, N ** 3, GRID_EVAL_CHUNK):

@@ -30,7 +30,7 @@ import math
 
 import torch
 
-from shells.fields.neus import composite, may_have_density, neus_alpha
+from shells.fields.neus import composite, half_cell_diagonal, may_have_density, neus_alpha
 from shells.render.warp import ray_span, s_of_t, t_of_s
 
 UNLIT = 0.01  # culled samples under UNLIT * cull of weight get no colour (render_volume_rays)
@@ -60,7 +60,7 @@ class SpanGrid:
         self.aabb = aabb.detach().float()
         self.N, self.k, self.chunk = int(resolution), float(k), int(chunk)
         self.cell = (self.aabb[1] - self.aabb[0]) / self.N  # [3]
-        self.h = 0.5 * float(self.cell.norm())  # half cell diagonal
+        self.h = half_cell_diagonal(self.aabb, self.N)
         self.occ: torch.Tensor | None = None
 
     @torch.no_grad()

@@ -40,7 +40,7 @@ from shells.errors import InputError
 from shells.files import write_json
 from shells.fields.hashgrid import drjit_on_calling_thread
 from shells.fields.network import ShellField
-from shells.fields.neus import may_have_density
+from shells.fields.neus import half_cell_diagonal, may_have_density
 from shells.metrics import psnr
 from shells.progress import tqdm
 from shells.render.volume import SpanGrid, ray_aabb, render_volume_image, render_volume_rays
@@ -129,8 +129,7 @@ def off_band(field: ShellField, out: dict[str, torch.Tensor], tc: TrainConfig,
     where it crossed f = 0 (the predicted normal said it was leaving there), and neither the
     shells nor an occupancy grid sample it. Returns (the mean over rays of the weight there,
     with gradient: the off-band term; its share of all the weight, detached; near [R, S])."""
-    box = field.aabb
-    h = 0.5 * float((box[1] - box[0]).norm()) / tc.occ_resolution
+    h = half_cell_diagonal(field.aabb, tc.occ_resolution)
     f = out["sdf"].detach()
     near = may_have_density(f, out["s"].detach(), h, tc.occ_k)
     off = (f < 0) & ~near
