@@ -42,7 +42,7 @@ from shells.errors import InputError
 from shells.render.occupancy import render_occupancy
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
 from shells.render.sampler import (PackedSamples, far_intervals, field_warp, place_packed,
-                                  ray_sample_counts, shell_intervals)
+                                  sample_counts, shell_intervals)
 from shells.render.shading import WHITE, composite_packed, end_colour, shade_samples
 
 MODES = ("band", "full", "occupancy", "baked")
@@ -142,12 +142,12 @@ def render_intervals(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
     that end solid) and the weight-averaged field normal mi.Vector3f [R] (not normalised; 0
     without samples), which the adaptive refinement (`shells.render.refine`) compares."""
     warp, n = field_warp(field), dr.width(d)
-    if fixed is None and n > 1:  # a band batch: its samples are known only now
-        counts = ray_sample_counts(iv, cfg, None, warp, o, d)
-        if int(dr.sum(counts)[0]) > sample_budget(cfg):
-            return _render_groups(field, o, d, iv, cfg, background, extras,
-                                  ray_groups(counts, sample_budget(cfg)))
-    samples = place_packed(iv, cfg, fixed=fixed, warp=warp, o=o, d=d)
+    counts = sample_counts(iv, cfg, fixed, warp, o, d)
+    # a band batch's samples are known only now (full batches were sized by theirs)
+    if fixed is None and n > 1 and int(dr.sum(counts.per_ray)[0]) > sample_budget(cfg):
+        return _render_groups(field, o, d, iv, cfg, background, extras,
+                              ray_groups(counts.per_ray, sample_budget(cfg)))
+    samples = place_packed(iv, cfg, counts=counts)
     bg = mi.Color3f(*[float(c) for c in background])
     if samples.size == 0:
         out = (dr.zeros(mi.Color3f, n) + bg, samples.count)

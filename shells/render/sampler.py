@@ -31,7 +31,7 @@ for instead of N_max.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import drjit as dr
 import mitsuba as mi
@@ -185,17 +185,40 @@ def _fill(enter: Any, exit_: Any, n_int: Any, per_ray: Any, base: Any, K: int,
             j = mi.UInt32(0)
 
 
+class Counts(NamedTuple):
+    """Procedure 3's sample counts of a batch of rays, and the interval ends they came from."""
+
+    enter: Any  # mi.Float [R * K] interval entries (in s when warped)
+    exit: Any  # mi.Float [R * K] interval exits
+    tb: Any  # mi.Float [R] each ray's t_b when warped, else None
+    per_interval: Any  # mi.UInt32 [R * K] samples of each interval slot
+    per_ray: Any  # mi.UInt32 [R] samples of each ray
+
+
+def sample_counts(iv: Intervals, cfg: RenderConfig,
+                  fixed: int | None = None,  # samples per interval instead of Procedure 3
+                  warp: Warp | None = None, o: Any = None, d: Any = None,  # unbounded: the
+                  # field's warp (`field_warp`) and the rays
+                  ) -> Counts:
+    """How many samples each interval and ray gets (the renderer sizes its groups of rays by
+    them before `place_packed` places them)."""
+    enter, exit_, tb = _warped_ends(iv, o, d, warp)
+    n_int, per_ray = _per_interval_counts(iv, enter, exit_, cfg, fixed)
+    dr.eval(n_int, per_ray)
+    return Counts(enter, exit_, tb, n_int, per_ray)
+
+
 def place_packed(iv: Intervals, cfg: RenderConfig,
                  fixed: int | None = None,  # samples per interval instead of Procedure 3
                  warp: Warp | None = None, o: Any = None, d: Any = None,  # unbounded: the
                  # field's warp (`field_warp`) and the rays
+                 counts: Counts | None = None,  # `sample_counts` of the same arguments
                  ) -> PackedSamples:
     """Packed layout for the Dr.Jit renderer."""
     R, K = iv.enter.shape
-    enter, exit_, tb = _warped_ends(iv, o, d, warp)
-    n_int, per_ray = _per_interval_counts(iv, enter, exit_, cfg, fixed)
+    enter, exit_, tb, n_int, per_ray = counts or sample_counts(iv, cfg, fixed, warp, o, d)
     start = dr.prefix_sum(per_ray)
-    dr.eval(n_int, per_ray, start)
+    dr.eval(start)
     M = int(dr.sum(per_ray)[0]) if R else 0
     max_count = int(dr.max(per_ray)[0]) if R else 0
     size = max(M, 1)  # keep arrays non-empty; PackedSamples.size reports 0
@@ -207,17 +230,6 @@ def place_packed(iv: Intervals, cfg: RenderConfig,
     dr.eval(t, delta, ray)
     return PackedSamples(t=t, delta=delta, ray=ray, start=start, count=per_ray,
                          max_count=max_count, solid=solid_end(iv.t_inner.array, per_ray))
-
-
-def ray_sample_counts(iv: Intervals, cfg: RenderConfig,
-                      fixed: int | None = None, warp: Warp | None = None, o: Any = None,
-                      d: Any = None) -> Any:  # mi.UInt32 [R]
-    """How many samples `place_packed` gives each ray, without placing them (the renderer
-    sizes its groups of rays by them)."""
-    enter, exit_, _ = _warped_ends(iv, o, d, warp)
-    per_ray = _per_interval_counts(iv, enter, exit_, cfg, fixed)[1]
-    dr.eval(per_ray)
-    return per_ray
 
 
 def place_padded(iv: Intervals, cfg: RenderConfig, warp: Warp | None = None, o: Any = None,
