@@ -216,7 +216,9 @@ def place_packed(iv: Intervals, cfg: RenderConfig,
                  ) -> PackedSamples:
     """Packed layout for the Dr.Jit renderer."""
     R, K = iv.enter.shape
-    enter, exit_, tb, n_int, per_ray = counts or sample_counts(iv, cfg, fixed, warp, o, d)
+    if counts is None:
+        counts = sample_counts(iv, cfg, fixed, warp, o, d)
+    enter, exit_, tb, n_int, per_ray = counts
     start = dr.prefix_sum(per_ray)
     dr.eval(start)
     M = int(dr.sum(per_ray)[0]) if R else 0
