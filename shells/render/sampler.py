@@ -239,10 +239,9 @@ def place_padded(iv: Intervals, cfg: RenderConfig, warp: Warp | None = None, o: 
     """Padded torch layout: t [R, S], delta [R, S], mask [R, S] bool, solid [R] bool
     (`solid_end`), on the device of the Mitsuba variant."""
     R, K = iv.enter.shape
-    enter, exit_, tb = _warped_ends(iv, o, d, warp)
-    n_int, per_ray = _per_interval_counts(iv, enter, exit_, cfg, None)
+    enter, exit_, tb, n_int, per_ray = sample_counts(iv, cfg, None, warp, o, d)
     solid = solid_end(iv.t_inner.array, per_ray)
-    dr.eval(n_int, per_ray, solid)
+    dr.eval(solid)
     S = max(int(dr.max(per_ray)[0]) if R else 0, 1)
     t = dr.zeros(mi.Float, R * S)
     delta = dr.zeros(mi.Float, R * S)
