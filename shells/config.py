@@ -220,6 +220,9 @@ class RenderConfig:
     # rounds have a fixed cost that small frames do not earn back (shells/presets.py, SHARP_BAND)
     band_ert_eps: float = 0.0
     band_chunk: int = 2
+    band_peel_step: int = 0  # with band_ert_eps: M+ hits peeled at a time; after each step's
+    # samples are shaded only the rays still letting light through peel on, up to dp_max
+    # (`ShellScene.resume`). 0 = all dp_max hits at once
     # image-space adaptive refinement (shells-render --refine L, shells/render/refine.py): a
     # pixel is interpolated from its parents only if every test passes, else evaluated
     refine_levels: int = 0  # L: the coarse image takes every 2^L-th pixel; 0 = band mode as is
@@ -453,6 +456,7 @@ _RULES = [_rule(k, *r) for k, r in [
     ("render.ert_eps", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),
     ("render.band_ert_eps", ((lambda v: 0 <= v < 1), "must be in [0, 1)")),
     ("render.band_chunk", _at_least(1)),
+    ("render.band_peel_step", _at_least(0)),
     ("render.refine_levels", ((lambda v: 0 <= v <= 6), "must be in 0..6")),
     ("render.refine_fuzzy_samples", _at_least(1)),
     *[(f"render.{k}", _fraction()) for k in ("refine_normal_cos", "refine_grazing",

@@ -196,6 +196,45 @@ def test_band_early_termination_differs_by_no_more_than_the_light_left(shells):
     assert spp2[covered].float().mean() < 0.75 * spp[covered].float().mean()
 
 
+def test_band_peeled_on_demand_renders_what_one_peel_renders(monkeypatch):
+    # `render.band_peel_step`: every ray peels its first 2 M+ hits, and only the rays still
+    # letting light through once those are shaded peel on, 2 hits at a time. M+ is a shell
+    # around the opaque sphere and a second one behind it (z = 1.2; the field is empty
+    # there). The rays through the sphere stop in their first interval and never cast against
+    # the one behind; the rays past its rim resume. Each pixel moves by no more than the light
+    # left where its ray stopped, and the resumed rays are a small share of the covered ones.
+    mitsuba_variant()
+    front, back = trimesh.creation.icosphere(5, 0.6), trimesh.creation.icosphere(4, 0.3)
+    back.apply_translation((0.0, 0.0, 1.2))
+    both = trimesh.util.concatenate([front, back])
+    scene = ShellScene((both.vertices, both.faces))
+    o, d = camera_rays(32, 32, fov=0.9)
+    resumed = []
+    resume = ShellScene.resume
+
+    def counting(self, o, d, state, dp_max, hits=None, mode="symbolic"):
+        resumed.append(dr.width(d))
+        return resume(self, o, d, state, dp_max, hits, mode)
+
+    monkeypatch.setattr(ShellScene, "resume", counting)
+    for eps in (1e-4, 0.05):
+        for chunk in (1, 3):
+            cfg = RenderConfig(band_ert_eps=eps, band_chunk=chunk)
+            img, spp = render_image(SphereField(), o, d, 32, 32, cfg, "band", scene=scene)
+            assert resumed == []
+            cfg.band_peel_step = 2
+            img2, spp2 = render_image(SphereField(), o, d, 32, 32, cfg, "band", scene=scene)
+            assert (img2 - img).abs().max() <= eps + 1e-6
+            assert torch.equal(spp2 > 0, spp > 0)
+            assert abs(int(spp2.sum()) - int(spp.sum())) <= 0.02 * int(spp.sum())
+            covered = int((spp > 0).sum())
+            # steps of 2 hits up to dp_max 8: at most 3 resumptions, each of fewer rays
+            assert 1 <= len(resumed) <= 3 and resumed == sorted(resumed, reverse=True)
+            assert 0 < resumed[0] < 0.5 * covered, (resumed, covered)
+            resumed.clear()
+    assert torch.equal(img2[0, 0], torch.ones(3))  # a ray missing both shells
+
+
 def test_band_batches_shade_their_samples_in_groups_within_the_budget(shells, monkeypatch):
     # A band batch holds its rays, not their worst-case samples; samples beyond the budget are
     # placed and shaded in consecutive groups of rays. With a budget of 100 samples the 32 x 32

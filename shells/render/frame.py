@@ -13,7 +13,9 @@ Per batch of rays (§3.4, §4.2):
           front-to-back compositing per ray over the background (`shells.render.shading`).
           Band mode with render.band_ert_eps > 0 (the sharp preset's) shades the samples in
           rounds instead and stops a ray once its transmittance is below it
-          (`_composite_rounds`).
+          (`_composite_rounds`); with render.band_peel_step it peels that many M+ hits of
+          every ray, shades them, and peels on only the rays still letting light through
+          (`_render_band_on_demand`).
     baked: the baked layer meshes (`shells.render.baked`): each layer's nearest hit, its
           interpolated colour and opacity blended in the layers' fixed order; ``scene`` is then
           a `shells.render.baked.LayerScene` and the field is not used.
@@ -30,7 +32,7 @@ be torch rays (converted without a copy) and the outputs convert to torch withou
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import drjit as dr
 import mitsuba as mi
@@ -41,8 +43,8 @@ from shells.config import RenderConfig
 from shells.errors import InputError
 from shells.render.occupancy import render_occupancy
 from shells.render.raycast import ShellScene, box_intervals, to_point3f
-from shells.render.sampler import (PackedSamples, far_intervals, field_warp, place_packed,
-                                  sample_counts, shell_intervals)
+from shells.render.sampler import (PackedSamples, cast_start, far_intervals, field_warp,
+                                  place_packed, sample_counts, shell_intervals, solid_end)
 from shells.render.shading import WHITE, composite_packed, end_colour, shade_samples
 
 MODES = ("band", "full", "occupancy", "baked")
@@ -109,6 +111,8 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
     if mode == "band":
         if scene is None:
             raise InputError("band mode needs the shells: pass a ShellScene")
+        if cfg.band_ert_eps > 0 and 0 < cfg.band_peel_step < cfg.dp_max:
+            return _render_band_on_demand(field, o, d, scene, cfg, background)
         iv = shell_intervals(scene, o, d, cfg.dp_max, field_warp(field))
         return render_intervals(field, o, d, iv, cfg, background)[:2]
     if mode == "full":
@@ -153,7 +157,8 @@ def render_intervals(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
         out = (dr.zeros(mi.Color3f, n) + bg, samples.count)
         return out + ((dr.zeros(mi.Float, n), dr.zeros(mi.Vector3f, n)) if extras else ())
     if fixed is None and not extras and cfg.band_ert_eps > 0:
-        return _composite_rounds(field, samples, o, d, cfg, bg)
+        light = _composite_rounds(field, samples, o, d, cfg, Light.dark(n))
+        return light.colour(samples.solid, bg), light.taken
     shaded = shade_samples(field, samples, o, d, normals=extras)
     alpha, rgb = shaded[:2]
     end = end_colour(rgb, samples, bg)  # the solid-end rule (background in full mode)
@@ -188,27 +193,56 @@ def _render_groups(field: Any, o: Any, d: Any, iv: Any, cfg: RenderConfig,
     return outs
 
 
+class Light(NamedTuple):
+    """What the band samples shaded so far left on each ray (Dr.Jit arrays [R])."""
+
+    trans: Any  # mi.Float transmittance after the samples taken
+    acc: Any  # mi.Color3f colour accumulated
+    taken: Any  # mi.UInt32 samples taken
+    last: Any  # mi.Color3f colour of the last sample taken
+
+    @classmethod
+    def dark(cls, n: int) -> "Light":
+        """n rays before their first sample."""
+        return cls(dr.ones(mi.Float, n), dr.zeros(mi.Color3f, n), dr.zeros(mi.UInt32, n),
+                   dr.zeros(mi.Color3f, n))
+
+    def take(self, idx: Any) -> "Light":
+        """The rays ``idx`` (mi.UInt32)."""
+        return Light(*(dr.gather(type(v), v, idx) for v in self))
+
+    def put(self, part: "Light", idx: Any) -> None:
+        """Write ``part`` (the rays ``idx``) back in place."""
+        for v, w in zip(self, part):
+            dr.scatter(v, w, idx)
+        dr.eval(*self)
+
+    def colour(self, solid: Any, bg: Any) -> Any:
+        """The rays' colours: the remaining transmittance ends on the last sample's colour
+        where ``solid`` (`shells.render.sampler.solid_end`; None: nowhere), else on ``bg``."""
+        end = bg if solid is None else dr.select(solid, self.last, bg)
+        colour = dr.fma(end, self.trans, self.acc)
+        dr.eval(colour, self.taken)
+        return colour
+
+
 def _composite_rounds(field: Any, samples: PackedSamples, o: Any, d: Any,
-                      cfg: RenderConfig, bg: Any) -> tuple[Any, Any]:
+                      cfg: RenderConfig, light: Light) -> Light:
     """Band samples shaded front to back in rounds, with early ray termination: each round
     evaluates the next ``cfg.band_chunk`` samples (more as rays drop out) of every live ray,
     and a ray whose transmittance fell below ``cfg.band_ert_eps`` takes no more. The colour
     differs from shading every sample by less than that transmittance (the light of the
     samples not taken); the solid-end rule applies to the remaining transmittance as before,
-    with the last sample taken. Returns colour mi.Color3f [R] and the samples evaluated per
-    ray mi.UInt32 [R]."""
-    R = dr.width(samples.count)
-    trans = dr.ones(mi.Float, R)
-    acc = dr.zeros(mi.Color3f, R)
-    taken = dr.zeros(mi.UInt32, R)
-    last = dr.zeros(mi.Color3f, R)  # colour of the last sample taken
-    rid = dr.compress(samples.count > 0)  # live rays
+    with the last sample taken. ``light``: what earlier samples left on the rays (`Light.dark`
+    for none); returns it after these samples."""
+    trans, acc, taken, last = (dr.copy(v) for v in light)
+    rid = dr.compress((samples.count > 0) & (trans >= cfg.band_ert_eps))  # live rays
     first, total = (dr.gather(mi.UInt32, v, rid) for v in (samples.start, samples.count))
     ro, rd = dr.gather(mi.Point3f, o, rid), dr.gather(mi.Vector3f, d, rid)
     pos = dr.zeros(mi.UInt32, dr.width(rid))  # samples taken so far by each live ray
-    T = dr.ones(mi.Float, dr.width(rid))
-    C = dr.zeros(mi.Color3f, dr.width(rid))
-    dr.eval(first, total, ro, rd, pos, T, C)
+    T, C = dr.gather(mi.Float, trans, rid), dr.gather(mi.Color3f, acc, rid)
+    before = dr.gather(mi.UInt32, taken, rid)
+    dr.eval(first, total, ro, rd, pos, T, C, before)
     black = mi.Color3f(0.0)
     R0 = max(dr.width(rid), 1)
     while dr.width(rid) > 0:
@@ -229,19 +263,68 @@ def _composite_rounds(field: Any, samples: PackedSamples, o: Any, d: Any,
         pos = pos + m
         dr.scatter(trans, T, rid)
         dr.scatter(acc, C, rid)
-        dr.scatter(taken, pos, rid)
+        dr.scatter(taken, before + pos, rid)
         dr.scatter(last, dr.gather(mi.Color3f, rgb, sub.start + m - 1), rid)
         go = (T >= cfg.band_ert_eps) & (pos < total)
         dr.eval(trans, acc, taken, last, T, C, pos, go)
         keep = dr.compress(go)
-        rid, first, total, pos = (dr.gather(mi.UInt32, v, keep) for v in (rid, first, total, pos))
+        rid, first, total, pos, before = (dr.gather(mi.UInt32, v, keep)
+                                          for v in (rid, first, total, pos, before))
         ro, rd = dr.gather(mi.Point3f, ro, keep), dr.gather(mi.Vector3f, rd, keep)
         T, C = dr.gather(mi.Float, T, keep), dr.gather(mi.Color3f, C, keep)
-        dr.eval(rid, first, total, pos, ro, rd, T, C)
-    end = bg if samples.solid is None else dr.select(samples.solid, last, bg)
-    colour = dr.fma(end, trans, acc)
-    dr.eval(colour, taken)
-    return colour, taken
+        dr.eval(rid, first, total, pos, before, ro, rd, T, C)
+    return Light(trans, acc, taken, last)
+
+
+def _shade_band(field: Any, o: Any, d: Any, iv: Any, cfg: RenderConfig, light: Light) -> Light:
+    """`_composite_rounds` of the band samples of intervals ``iv`` (after ``light``), placed
+    and shaded in groups of rays within `sample_budget` as `render_intervals` does."""
+    n, warp = dr.width(d), field_warp(field)
+    counts = sample_counts(iv, cfg, None, warp, o, d)
+    if n > 1 and int(dr.sum(counts.per_ray)[0]) > sample_budget(cfg):
+        light = Light(*(dr.copy(v) for v in light))
+        for a, b in ray_groups(counts.per_ray, sample_budget(cfg)):
+            idx = dr.arange(mi.UInt32, a, b)
+            light.put(_shade_band(field, dr.gather(mi.Point3f, o, idx),
+                                  dr.gather(mi.Vector3f, d, idx), iv.rows(a, b), cfg,
+                                  light.take(idx)), idx)
+        return light
+    samples = place_packed(iv, cfg, counts=counts)
+    if samples.size == 0:
+        return light
+    return _composite_rounds(field, samples, o, d, cfg, light)
+
+
+def _render_band_on_demand(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
+                           scene: ShellScene, cfg: RenderConfig,
+                           background: tuple[float, float, float]) -> tuple[Any, Any]:
+    """Band mode with early termination, peeling on demand: every ray peels
+    ``cfg.band_peel_step`` M+ hits and their samples are shaded; then the rays whose peel goes
+    on and whose transmittance is still at least ``cfg.band_ert_eps`` peel that many more
+    (`ShellScene.resume`: the same intervals as one peel) and shade them, and so on up to
+    ``cfg.dp_max``. The others never cast against the layers behind: most of a sharp field's
+    covered rays are opaque after their first intervals. A ray that stopped before its peel
+    ended may not know it reaches M-: its end colour takes the background, a difference of
+    less than its transmittance (below ``cfg.band_ert_eps``). Returns colour mi.Color3f [R]
+    and the samples taken per ray mi.UInt32 [R]."""
+    n, warp, step = dr.width(d), field_warp(field), cfg.band_peel_step
+    bg = mi.Color3f(*[float(c) for c in background])
+    iv, peel = scene.peel(o, d, cfg.dp_max, step, start=cast_start(o, d, warp))
+    light = _shade_band(field, o, d, iv, cfg, Light.dark(n))
+    t_inner = dr.copy(iv.t_inner.array)
+    rays, ro, rd, hits = dr.arange(mi.UInt32, n), o, d, step  # the rays peeling on
+    while hits < cfg.dp_max:
+        keep = dr.compress(peel.going & (dr.gather(mi.Float, light.trans, rays) >=
+                                         cfg.band_ert_eps))
+        if dr.width(keep) == 0:
+            break
+        rays, peel = dr.gather(mi.UInt32, rays, keep), peel.take(keep)
+        ro, rd = dr.gather(mi.Point3f, ro, keep), dr.gather(mi.Vector3f, rd, keep)
+        hits = min(cfg.dp_max, hits + step)
+        iv, peel = scene.resume(ro, rd, peel, cfg.dp_max, hits)
+        light.put(_shade_band(field, ro, rd, iv, cfg, light.take(rays)), rays)
+        dr.scatter(t_inner, iv.t_inner.array, rays)
+    return light.colour(solid_end(t_inner, light.taken), bg), light.taken
 
 
 def render_image(field: Any,

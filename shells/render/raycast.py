@@ -89,6 +89,24 @@ class Intervals:
                 "count": self.count.torch(), "t_inner": self.t_inner.torch()}
 
 
+@dataclass
+class Peel:
+    """Where the depth peel of each ray stands (`ShellScene.peel`); Dr.Jit arrays [R]."""
+
+    ray_o: Any  # mi.Point3f where the next cast starts
+    hits: Any  # mi.UInt32 M+ hits consumed so far
+    total: Any  # mi.UInt32 intervals closed so far
+    inside: Any  # mi.Bool an interval is open at t_open
+    t_open: Any  # mi.Float entry distance of the open interval
+    t_prev: Any  # mi.Float distance of the previous M+ hit (the cast's start before the first)
+    t_inner: Any  # mi.Float first M- hit, inf if none yet
+    going: Any  # mi.Bool the peel has more to do (no M- hit, no miss, hits < dp_max)
+
+    def take(self, idx: Any) -> "Peel":
+        """The states of the rays ``idx`` (mi.UInt32)."""
+        return Peel(**{k: dr.gather(type(v), v, idx) for k, v in vars(self).items()})
+
+
 def tensor_xi() -> type:
     """The int32 tensor type of the current Mitsuba variant's backend."""
     return dr.cuda.ad.TensorXi if mi.variant().startswith("cuda") else dr.llvm.ad.TensorXi
@@ -204,7 +222,7 @@ class ShellScene:
 
     def intervals(self, origins: Any,  # [R, 3] torch/numpy, or mi.Point3f
                   dirs: Any,  # [R, 3] unit directions, torch/numpy, or mi.Vector3f
-                  dp_max: int,  # at most this many M+ hits peeled per ray
+                  dp_max: int,  # at most this many M+ hits are peeled per ray
                   mode: str = "symbolic",  # Dr.Jit loop mode: 'symbolic' or 'evaluated'
                   start: Any = None,  # mi.Float [R]: each ray's cast starts at this distance
                   ) -> Intervals:
@@ -213,23 +231,55 @@ class ShellScene:
 
         Both loop modes give identical results (timings in the module docstring).
         """
-        if dp_max < 1:
-            raise InputError(f"dp_max={dp_max}: must be >= 1")
+        return self.peel(origins, dirs, dp_max, dp_max, mode, start)[0]
+
+    def peel(self, origins: Any, dirs: Any,  # as `intervals`
+             dp_max: int,  # the rays' budget of M+ hits
+             hits: int,  # M+ hits peeled by this call (at most dp_max)
+             mode: str = "symbolic", start: Any = None) -> tuple[Intervals, "Peel"]:
+        """The intervals closed within the first ``hits`` M+ hits of each ray, and where each
+        peel stands (`Peel`): `resume` takes the rays it still has going on from there, so a
+        renderer peels the deeper layers only for the rays that still let light through."""
+        if dp_max < 1 or not 1 <= hits <= dp_max:
+            raise InputError(f"dp_max={dp_max}, hits={hits}: need 1 <= hits <= dp_max")
         o = to_point3f(origins, mi.Point3f)
         d = to_point3f(dirs, mi.Vector3f)
+        n = dr.width(d)
+        o0, t0 = (o, mi.Float(0.0)) if start is None else (o + start * d, mi.Float(start))
+        state = Peel(ray_o=mi.Point3f(o0), hits=dr.zeros(mi.UInt32, n),
+                     total=dr.zeros(mi.UInt32, n), inside=dr.full(mi.Bool, False, n),
+                     t_open=dr.zeros(mi.Float, n), t_prev=dr.zeros(mi.Float, n) + t0,
+                     t_inner=dr.full(mi.Float, dr.inf, n), going=dr.full(mi.Bool, True, n))
+        return self._resume(o, d, state, dp_max, hits, mode)
+
+    def resume(self, origins: Any, dirs: Any,  # the rays of ``state``, as `intervals`
+               state: "Peel", dp_max: int,
+               hits: int | None = None,  # peel on to this many M+ hits (None: dp_max)
+               mode: str = "symbolic") -> tuple[Intervals, "Peel"]:
+        """Go on peeling from ``state`` (`peel`): the intervals closed from there on, in
+        slots counted from 0, and the new state. A peel resumed to dp_max closes the same
+        intervals, with the same distances, as one `intervals` call."""
+        hits = dp_max if hits is None else hits
+        if not 1 <= hits <= dp_max:
+            raise InputError(f"dp_max={dp_max}, hits={hits}: need 1 <= hits <= dp_max")
+        return self._resume(to_point3f(origins, mi.Point3f), to_point3f(dirs, mi.Vector3f),
+                            state, dp_max, hits, mode)
+
+    def _resume(self, o: Any, d: Any, state: "Peel", dp_max: int, hits: int, mode: str
+                ) -> tuple[Intervals, "Peel"]:
         n = dr.width(d)
         K = (dp_max + 1) // 2  # a ray starting inside M+ closes an interval on its first hit
         enter = dr.zeros(mi.Float, n * K)
         exit_ = dr.zeros(mi.Float, n * K)
-        o0, t0 = (o, mi.Float(0.0)) if start is None else (o + start * d, mi.Float(start))
         normals = (self._normals_outer,
                    self._normals_inner if self.has_inner else self._normals_outer)
-        count, t_inner = _peel(self.scene, self._outer_ptr, normals, o, d, enter, exit_,
-                               K, dp_max, mode, o0, t0)
-        dr.eval(enter, exit_, count, t_inner)
-        return Intervals(enter=mi.TensorXf(enter, (n, K)), exit=mi.TensorXf(exit_, (n, K)),
-                         count=tensor_xi()(mi.Int(count), (n,)),
-                         t_inner=mi.TensorXf(t_inner, (n,)))
+        count, state = _peel(self.scene, self._outer_ptr, normals, o, d, enter, exit_,
+                             K, dp_max, hits, mode, state)
+        dr.eval(enter, exit_, count, *vars(state).values())
+        iv = Intervals(enter=mi.TensorXf(enter, (n, K)), exit=mi.TensorXf(exit_, (n, K)),
+                       count=tensor_xi()(mi.Int(count), (n,)),
+                       t_inner=mi.TensorXf(state.t_inner, (n,)))
+        return iv, state
 
 
 def face_normals(mesh: "mi.Mesh") -> Any:
@@ -246,20 +296,20 @@ def face_normals(mesh: "mi.Mesh") -> Any:
 
 @dr.syntax
 def _peel(scene: "mi.Scene", outer_ptr: Any, normals: tuple[Any, Any], o: Any, d: Any,
-          enter: Any, exit_: Any, K: int, dp_max: int, mode: str, o0: Any, t0: Any
-          ) -> tuple[Any, Any]:
-    """Depth-peel the scene from o0 = o + t0 d; scatter closed intervals (distances from o)
-    into enter/exit [R * K] in place. ``normals``: the face normals of M+ and of M-."""
+          enter: Any, exit_: Any, K: int, dp_max: int, limit: int, mode: str, state: Peel
+          ) -> tuple[Any, Peel]:
+    """Depth-peel the scene on from ``state`` until ``limit`` M+ hits; scatter the intervals
+    it closes (distances from o) into enter/exit [R * K] in place, from slot 0. Returns the
+    count of those intervals and the new state. ``normals``: the face normals of M+ and of
+    M-."""
     n = dr.width(d)
     row = dr.arange(mi.UInt32, n) * K
-    ray_o = mi.Point3f(o0)
-    active = mi.Bool(True)  # still peeling
-    hits = mi.UInt32(0)  # M+ hits consumed so far (<= dp_max)
-    count = mi.UInt32(0)  # closed intervals written for this ray
-    inside = mi.Bool(False)  # an interval is open at t_open
-    t_open = mi.Float(0.0)  # entry distance of the open interval
-    t_prev = mi.Float(t0)  # distance of the previous M+ hit (the cast's start before the first)
-    t_inner = mi.Float(dr.inf)  # first M- hit
+    ray_o, hits, total, inside = state.ray_o, state.hits, state.total, state.inside
+    t_open, t_prev, t_inner, going = state.t_open, state.t_prev, state.t_inner, state.going
+    count = dr.zeros(mi.UInt32, n)  # intervals closed by this call
+    # opaque: one kernel for every step of a peel resumed in steps
+    limit = dr.opaque(mi.UInt32, limit)
+    active = going & (hits < limit)
     while dr.hint(active, mode=mode, max_iterations=-1, label="shell_peel"):
         pi = scene.ray_intersect_preliminary(mi.Ray3f(ray_o, d), False)
         valid = pi.is_valid()
@@ -277,17 +327,20 @@ def _peel(scene: "mi.Scene", outer_ptr: Any, normals: tuple[Any, Any], o: Any, d
         start = dr.select(inside, t_open, t_prev)
         # M- lies inside M+: hitting it first also means the ray started inside M+.
         close = (is_outer & ~entering) | (is_inner & (inside | (hits == 0)))
-        close &= count < K
+        close &= total < K
         dr.scatter(enter, start, row + count, active=close)
         dr.scatter(exit_, t, row + count, active=close)
         count = dr.select(close, count + 1, count)
+        total = dr.select(close, total + 1, total)
 
         t_inner = dr.select(is_inner, t, t_inner)
         t_open = dr.select(is_outer & entering & ~inside, t, t_open)  # a double entry keeps the first
         inside = is_outer & entering
         hits = dr.select(is_outer, hits + 1, hits)
         t_prev = dr.select(is_outer, t, t_prev)
-        active = is_outer & (hits < dp_max)
+        going = is_outer & (hits < dp_max)
+        active = going & (hits < limit)
         offset = (1.0 + dr.max(dr.abs(p))) * (1500.0 * dr.epsilon(mi.Float))
         ray_o = dr.fma(normal, dr.select(cos >= 0, offset, -offset), p)
-    return count, t_inner
+    return count, Peel(ray_o=ray_o, hits=hits, total=total, inside=inside, t_open=t_open,
+                       t_prev=t_prev, t_inner=t_inner, going=going)
