@@ -88,7 +88,7 @@ def sharp_finetune_iters(base: int, pixels: float, batch_rays: int) -> int:
     """Stage-2 steps of the object preset's sharp fields: ``base`` (`object_finetune_iters`),
     or enough steps of ``batch_rays`` rays to draw SHARP_FINETUNE_SHARE of the ``pixels``
     training pixels if that is more, rounded to 100, at most SHARP_FINETUNE_MAX: lego at 800^2
-    (55.7 M pixels) gets 20 000, a 32-view capture of 512^2 the base 3500."""
+    (55.7 M pixels) gets 30 000, a 32-view capture of 512^2 4600 (its base is 3500)."""
     share = 100 * round(SHARP_FINETUNE_SHARE * pixels / batch_rays / 100)
     return max(base, min(SHARP_FINETUNE_MAX, share))
 
@@ -147,22 +147,26 @@ UNBOUNDED_SHARDS = 4
 # are extracted at 512^3, keep every mesh piece (small pieces are real studs and rods) and
 # reach further out; its f inside a solid stays within a few s of 0, so M- lies only where
 # f < -(h + 3 s) (the density-support term; a shallower M- ends rays where the surface still
-# absorbs, more so as the field sharpens); a ray crosses more shell layers than 8 peels; and
+# absorbs, more so as the field sharpens); a ray crosses more shell layers than 8 peels;
 # band mode stops a ray at transmittance 1e-4 (its rounds pay at 800^2: 1291 -> 1149 ms/frame on
-# lego, where at 200^2 they cost 63 -> 70 ms and at 64^2 5.5 -> 16.7 ms)
+# lego, where at 200^2 they cost 63 -> 70 ms and at 64^2 5.5 -> 16.7 ms); and the shells are
+# peeled 8 hits at a time, only for the rays still letting light through (most of a sharp
+# field's covered rays are opaque after their first intervals; smaller steps add more rounds
+# of field evaluations than they save casts)
 SHARP_RESOLUTION = 2048
 SHARP_SHELLS = {"resolution": 512, "min_component_fraction": 0.0, "beta_d": 1.2, "beta_e": 0.3,
                 "support_k_inner": 3.0}
-SHARP_BAND = {"dp_max": 32, "band_ert_eps": 1e-4}
+SHARP_BAND = {"dp_max": 32, "band_ert_eps": 1e-4, "band_peel_step": 8}
 # ... and the trainer's own renders (running curve, test PSNR) sample twice as densely as its
 # steps: 32 + 16 samples over a span of lego at 800^2 lie about 12 kernel sizes apart and
 # under-report its field by 1.4 dB; 64 + 32 come within 0.05 dB of 128 + 64
 SHARP_TRAIN = {"eval_density": 2}
 # ... and its stage 2 sees at least this share of the training pixels' rays: a sharp field's
-# band keeps gaining with stage-2 steps up to about this share and little past it, up to
-# SHARP_FINETUNE_MAX steps (BENCHMARKS.md, lego 800x800; docs/configuration.md)
-SHARP_FINETUNE_SHARE = 1.5
-SHARP_FINETUNE_MAX = 20_000
+# band keeps gaining with stage-2 steps up to about this share (one schedule of 30 000 steps of
+# 4096 rays on lego at 800^2), up to SHARP_FINETUNE_MAX steps (BENCHMARKS.md, lego 800x800;
+# docs/configuration.md)
+SHARP_FINETUNE_SHARE = 2.25
+SHARP_FINETUNE_MAX = 30_000
 START_RADII = 2.0  # the unbounded object preset's rays start this many radii from the centre
 CAMERA_SHARE = 0.8  # ... or at this share of the nearest training camera's distance, if less
 

@@ -327,20 +327,23 @@ def test_auto_preset_follows_the_image_size(tmp_path):
     assert sharp.field.max_resolution == 2048
     assert (sharp.shell.resolution, sharp.shell.min_component_fraction, sharp.shell.beta_d,
             sharp.shell.beta_e, sharp.shell.support_k_inner, sharp.shell.support_k_outer,
-            sharp.render.dp_max, sharp.render.band_ert_eps) == (512, 0.0, 1.2, 0.3, 3.0, 0.0,
-                                                                32, 1e-4)
-    # ... and a stage 2 that draws 1.5 times the training pixels, within [base, 20 000] steps:
+            sharp.render.dp_max, sharp.render.band_ert_eps,
+            sharp.render.band_peel_step) == (512, 0.0, 1.2, 0.3, 3.0, 0.0, 32, 1e-4, 8)
+    # ... and a stage 2 that draws 2.25 times the training pixels, within [base, 30 000] steps:
     # 4 views of 512^2 (1 M pixels) keep the base 3500
     assert sharp.finetune.iters == 3500
     # ... and a trainer that renders its curve and test views at twice its samples per ray
     assert (sharp.train.eval_density, cfg.train.eval_density) == (2, 1)
     from shells.presets import sharp_finetune_iters
-    assert sharp_finetune_iters(3500, 87 * 800 * 800, 4096) == 20_000  # 1.5 * 55.7 M / 4096
-    assert sharp_finetune_iters(3500, 20e6, 4096) == 7300  # 7324 rounded to 100
-    assert sharp_finetune_iters(3500, 32 * 512 * 512, 4096) == 3500  # 3072 < base
+    # 2.25 * 55.7 M / 4096 = 30 586: the cap
+    assert sharp_finetune_iters(3500, 87 * 800 * 800, 4096) == 30_000
+    assert sharp_finetune_iters(3500, 20e6, 4096) == 11_000  # 10 986 rounded to 100
+    assert sharp_finetune_iters(3500, 32 * 512 * 512, 4096) == 4600  # 4608 rounded
+    assert sharp_finetune_iters(3500, 16 * 512 * 512, 4096) == 3500  # 2304 < base
     assert (cfg.shell.resolution, cfg.shell.min_component_fraction, cfg.shell.beta_d,
             cfg.shell.beta_e, cfg.shell.support_k_inner, cfg.render.dp_max,
-            cfg.render.band_ert_eps) == (256, 0.01, 0.6, 0.8, 0.0, 8, 0.0)
+            cfg.render.band_ert_eps, cfg.render.band_peel_step) == (256, 0.01, 0.6, 0.8, 0.0,
+                                                                    8, 0.0, 0)
     # the weak Eikonal term is for bounded objects; an unbounded capture keeps the toy's 0.1
     from shells.fields.contraction import Similarity
     assert cfg.train.eikonal_weight == 0.005

@@ -472,3 +472,9 @@ def test_occupancy_and_band_baselines_agree_with_full_rays_on_an_unbounded_field
     band, n_band = render_rays(twin, o, d, cfg, "band", scene)
     assert np.abs(band.numpy() - ref).max() < 0.03
     assert n_band.numpy().mean() < 0.1 * n_full.numpy().mean()
+    # early termination, and the peel on demand from t_near: within the light left
+    ert = dataclasses.replace(cfg, band_ert_eps=1e-3)
+    one, _ = render_rays(twin, o, d, ert, "band", scene)
+    steps, _ = render_rays(twin, o, d, dataclasses.replace(ert, band_peel_step=1), "band",
+                           scene)
+    assert np.abs(steps.numpy() - one.numpy()).max() <= 1e-3 + 1e-6
