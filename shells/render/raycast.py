@@ -25,7 +25,10 @@ triangle) and gathers the triangle's normal from a table made once per mesh, whi
 than a full intersection record (position and frame from the triangle's vertices). On the CPU
 (llvm_ad_rgb) the symbolic loop and the evaluated one (one kernel per peel, like a Python loop)
 run equally fast, as Embree's ray casts dominate; the symbolic loop needs no host round trip per
-peel (``mode='evaluated'`` runs the same code the other way).
+peel (``mode='evaluated'`` runs the same code the other way). A peel can also stop after some
+hits and be resumed later for some of its rays (`ShellScene.peel`, `ShellScene.resume`, its
+state in `Peel`): band rendering peels the deeper layers only for the rays still letting light
+through (`shells.render.frame`).
 """
 
 from __future__ import annotations
