@@ -146,19 +146,19 @@ def render_intervals(field: Any, o: Any, d: Any,  # mi.Point3f / mi.Vector3f [R]
     that end solid) and the weight-averaged field normal mi.Vector3f [R] (not normalised; 0
     without samples), which the adaptive refinement (`shells.render.refine`) compares."""
     warp, n = field_warp(field), dr.width(d)
+    bg = mi.Color3f(*[float(c) for c in background])
+    if fixed is None and not extras and cfg.band_ert_eps > 0:  # band early termination
+        light = _shade_band(field, o, d, iv, cfg, Light.dark(n))
+        return light.colour(solid_end(iv.t_inner.array, light.taken), bg), light.taken
     counts = sample_counts(iv, cfg, fixed, warp, o, d)
     # a band batch's samples are known only now (full batches were sized by theirs)
     if fixed is None and n > 1 and int(dr.sum(counts.per_ray)[0]) > sample_budget(cfg):
         return _render_groups(field, o, d, iv, cfg, background, extras,
                               ray_groups(counts.per_ray, sample_budget(cfg)))
     samples = place_packed(iv, cfg, counts=counts)
-    bg = mi.Color3f(*[float(c) for c in background])
     if samples.size == 0:
         out = (dr.zeros(mi.Color3f, n) + bg, samples.count)
         return out + ((dr.zeros(mi.Float, n), dr.zeros(mi.Vector3f, n)) if extras else ())
-    if fixed is None and not extras and cfg.band_ert_eps > 0:
-        light = _composite_rounds(field, samples, o, d, cfg, Light.dark(n))
-        return light.colour(samples.solid, bg), light.taken
     shaded = shade_samples(field, samples, o, d, normals=extras)
     alpha, rgb = shaded[:2]
     end = end_colour(rgb, samples, bg)  # the solid-end rule (background in full mode)
@@ -278,7 +278,7 @@ def _composite_rounds(field: Any, samples: PackedSamples, o: Any, d: Any,
 
 def _shade_band(field: Any, o: Any, d: Any, iv: Any, cfg: RenderConfig, light: Light) -> Light:
     """`_composite_rounds` of the band samples of intervals ``iv`` (after ``light``), placed
-    and shaded in groups of rays within `sample_budget` as `render_intervals` does."""
+    and shaded in groups of rays within `sample_budget` (`ray_groups`)."""
     n, warp = dr.width(d), field_warp(field)
     counts = sample_counts(iv, cfg, None, warp, o, d)
     if n > 1 and int(dr.sum(counts.per_ray)[0]) > sample_budget(cfg):

@@ -243,8 +243,7 @@ class ShellScene:
         """The intervals closed within the first ``hits`` M+ hits of each ray, and where each
         peel stands (`Peel`): `resume` takes the rays it still has going on from there, so a
         renderer peels the deeper layers only for the rays that still let light through."""
-        if dp_max < 1 or not 1 <= hits <= dp_max:
-            raise InputError(f"dp_max={dp_max}, hits={hits}: need 1 <= hits <= dp_max")
+        _check_hits(hits, dp_max)
         o = to_point3f(origins, mi.Point3f)
         d = to_point3f(dirs, mi.Vector3f)
         n = dr.width(d)
@@ -263,8 +262,7 @@ class ShellScene:
         slots counted from 0, and the new state. A peel resumed to dp_max closes the same
         intervals, with the same distances, as one `intervals` call."""
         hits = dp_max if hits is None else hits
-        if not 1 <= hits <= dp_max:
-            raise InputError(f"dp_max={dp_max}, hits={hits}: need 1 <= hits <= dp_max")
+        _check_hits(hits, dp_max)
         return self._resume(to_point3f(origins, mi.Point3f), to_point3f(dirs, mi.Vector3f),
                             state, dp_max, hits, mode)
 
@@ -283,6 +281,11 @@ class ShellScene:
                        count=tensor_xi()(mi.Int(count), (n,)),
                        t_inner=mi.TensorXf(state.t_inner, (n,)))
         return iv, state
+
+
+def _check_hits(hits: int, dp_max: int) -> None:
+    if not 1 <= hits <= dp_max:
+        raise InputError(f"dp_max={dp_max}, hits={hits}: need 1 <= hits <= dp_max")
 
 
 def face_normals(mesh: "mi.Mesh") -> Any:
