@@ -437,7 +437,7 @@ def baked_bench(args: argparse.Namespace) -> dict[str, Any]:
     import tempfile
     import threading
 
-    from shells.baked import export_web, static_server
+    from shells.bake.run import export_web, static_server
     from shells.browser import Browser
     from shells.pipeline import render_run
 

@@ -484,7 +484,7 @@ def _view_args(p: argparse.ArgumentParser) -> None:
 
 def _view(args: argparse.Namespace) -> int:
     if args.baked:
-        from shells.baked import view_baked
+        from shells.bake.run import view_baked
 
         view_baked(args.run, host=args.host, port=args.port)
         return 0
@@ -616,37 +616,41 @@ def _lod(args: argparse.Namespace) -> int:
 
 def _bake_args(p: argparse.ArgumentParser) -> None:
     """Bake the band for real-time viewing: a few nested, semi-transparent layer meshes cut
-    from the stage-2 field's level sets inside the shells, their per-vertex colour, opacity and
-    view-dependent (degree-1 SH) colour fitted to the training photos through the renderer the
-    viewers use. Writes RUN/baked/layers.glb (glTF 2.0) and asset.json."""
+    from the stage-2 field's level sets inside the shells, each decimated as far as its own
+    geometric error allows, unwrapped into one texture atlas whose colour, opacity and
+    view-dependent (degree-1 SH) colour are fitted to the training photos through the renderer
+    the viewers use. Writes RUN/baked/layers.glb (glTF 2.0, PNG textures) and asset.json."""
     p.add_argument("run", help="run directory after shells-finetune")
     p.add_argument("--size-mb", type=float, default=None, metavar="MB",
-                   help="size budget of layers.glb (default 60); the layer grid is made coarser "
-                        "until the layers fit")
+                   help="texture budget: atlas texels x 13 bytes at most this (default 60); "
+                        "the texels are made coarser until they fit")
     p.add_argument("--levels", type=float, nargs="+", default=None, metavar="U",
                    help="level sets u = f / s of the layers, 0 (the surface) included "
                         "(default -2 -1 0 1 2 3 4)")
     p.add_argument("--resolution", type=int, default=None,
-                   help="grid of the layer meshes (default: 1.25 cells across a training "
-                        "pixel's footprint at the scene centre, at most the shells' resolution)")
+                   help="marching-cubes grid of the layer meshes before decimation (default: "
+                        "1.25 cells across a training pixel's footprint at the scene centre, at "
+                        "most the shells' resolution)")
     p.add_argument("--steps", type=int, default=None,
                    help="fitting steps (default 600)")
     p.add_argument("--teacher-views", type=int, default=None, metavar="N",
                    help="band renders of the stage-2 field from N turned training cameras, "
                         "fitted beside the photos (default: 4 per training view; 0: photos only)")
-    p.add_argument("--max-triangles", type=int, default=None, metavar="N",
-                   help="simplify the layers to about N triangles in all (quadric decimation): "
-                        "faster in a browser, coarser colours (default: no limit)")
+    p.add_argument("--tolerance", type=float, default=None, metavar="PX",
+                   help="how far each decimated layer may stray from its level set, in "
+                        "training-pixel footprints (default 0.5; 0: no decimation)")
+    p.add_argument("--texel", type=float, default=None, metavar="PX",
+                   help="atlas texel size in training-pixel footprints (default 1)")
 
 
 def _bake(args: argparse.Namespace) -> int:
-    from shells.baked import bake_run, bake_summary
+    from shells.bake.run import bake_run, bake_summary
 
     with _locked_run(args.run, "shells-bake"):
         rec = bake_run(args.run, levels=args.levels, resolution=args.resolution,
                        size_mb=args.size_mb, steps=args.steps,
-                       teacher_views=args.teacher_views, max_triangles=args.max_triangles,
-                       progress=True)
+                       teacher_views=args.teacher_views, tolerance_px=args.tolerance,
+                       texel_px=args.texel, progress=True)
     print(f"{bake_summary(rec)} -> {args.run}/baked/layers.glb")
     return 0
 
@@ -664,7 +668,7 @@ def _export_args(p: argparse.ArgumentParser) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from shells.baked import export_web
+    from shells.bake.run import export_web
 
     rec = export_web(args.run, args.web, args.three)
     print(f"{len(rec['files'])} files -> {rec['out']}; serve it: python -m http.server -d "
@@ -705,9 +709,9 @@ COMMANDS = {
     "shells-animate": Command(_animate_args, _animate, ("shells.pipeline",
                                                          "shells.render.deformed")),
     "shells-lod": Command(_lod_args, _lod, ("shells.pipeline", "shells.levelset.lod")),
-    "shells-bake": Command(_bake_args, _bake, ("shells.baked", "shells.train.bake",
-                                               "shells.render.baked")),
-    "shells-export": Command(_export_args, _export, ("shells.baked",)),
+    "shells-bake": Command(_bake_args, _bake, ("shells.bake.run", "shells.bake.fit",
+                                               "shells.bake.render")),
+    "shells-export": Command(_export_args, _export, ("shells.bake.run",)),
 }
 
 

@@ -215,7 +215,8 @@ def render_run(run_dir: str | Path, split: str = "test", mode: str = "band",
     variant = mitsuba_variant(rc.variant)
     scene = load_shells(run, variant, shells) if mode == "band" else None
     if mode == "baked":
-        from shells.render.baked import LayerScene, read_asset
+        from shells.bake.format import read_asset
+        from shells.bake.render import LayerScene
 
         scene = LayerScene.of(read_asset(run.baked), variant)
         if spp is None:  # as the asset was fitted (and as the browser's MSAA draws it)

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 import torch
 
-from shells.render.baked import (BakedAsset, LayerScene, quantise, read_asset, render_baked,
-                                 shade, up_matrix, write_asset)
+from shells.bake.format import (Atlas, BakedAsset, Layer, Textures, closed, quantise, read_asset,
+                                up_matrix, write_asset)
+from shells.bake.render import LayerScene, render_baked, sample
 
 ROOT = Path(__file__).resolve().parents[1]
 NODE = shutil.which("node")
@@ -29,25 +30,31 @@ def quad(z: float, x0: float, x1: float) -> tuple[np.ndarray, np.ndarray]:
     return V, np.array([[0, 1, 2], [0, 2, 3]], np.int64)
 
 
-def two_layers() -> tuple[list, BakedAsset]:
+def two_layers() -> BakedAsset:
     """Layer 0 (inner) at z = 2 across x in [-1, 11]; layer 1 (outer) at z = 1 over x in
-    [-1, 1] and at z = 3 over x in [9, 11] (behind layer 0 there)."""
+    [-1, 1] and at z = 3 over x in [9, 11] (behind layer 0 there). An 8 x 4 atlas: its left
+    half red at opacity 0.5 (layer 0's atlas coordinates), its right half blue at 0.5 with a
+    green SH term along z (layer 1's), each layer's coordinates at least a texel from the
+    halves' border, so that bilinear look-ups read one colour."""
     V0, F0 = quad(2.0, -1.0, 11.0)
     Va, Fa = quad(1.0, -1.0, 1.0)
     Vb, Fb = quad(3.0, 9.0, 11.0)
     V1, F1 = np.concatenate([Va, Vb]), np.concatenate([Fa, Fb + 4])
-    red = np.tile([1.0, 0.0, 0.0, 0.5], (4, 1))
-    blue = np.tile([0.0, 0.0, 1.0, 0.5], (8, 1))
-    sh0 = np.zeros((4, 3, 3))
-    sh1 = np.zeros((8, 3, 3))
-    sh1[:, 1, 2] = 0.4  # green rises with d_z: +0.4 for rays along +z
-    layers = [quantise(-1.0, V0, F0, torch.tensor(red), torch.tensor(sh0)),
-              quantise(0.0, V1, F1, torch.tensor(blue), torch.tensor(sh1))]
-    return layers, BakedAsset(layers=layers, background=(1.0, 1.0, 1.0))
+    uv0 = np.array([[0.1, 0.3], [0.3, 0.3], [0.3, 0.7], [0.1, 0.7]], np.float32)
+    uv1 = np.tile(uv0 + [0.6, 0.0], (2, 1)).astype(np.float32)
+    rgba = torch.zeros(4, 8, 4)
+    rgba[:, :4] = torch.tensor([1.0, 0.0, 0.0, 0.5])
+    rgba[:, 4:] = torch.tensor([0.0, 0.0, 1.0, 0.5])
+    sh = torch.zeros(4, 8, 3, 3)
+    sh[:, 4:, 1, 2] = 0.4  # green rises with d_z: +0.4 for rays along +z
+    layers = [Layer(-1.0, V0, F0.astype(np.uint32), uv0, False),
+              Layer(0.0, V1, F1.astype(np.uint32), uv1, False)]
+    return BakedAsset(layers=layers, atlas=quantise(Textures(rgba, sh)),
+                      background=(1.0, 1.0, 1.0))
 
 
 def test_compositing_rule_by_hand():
-    _, asset = two_layers()
+    asset = two_layers()
     scene = LayerScene.of(asset)
     o = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [30.0, 0.0, 0.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]] * 3)
@@ -64,6 +71,26 @@ def test_compositing_rule_by_hand():
     assert drawn.tolist() == [2, 1, 0]
 
 
+def test_texture_look_ups_are_bilinear_between_texel_centres_and_clamp_at_the_edge():
+    """A 2 x 2 texture [[0, 1], [2, 3]] (rows top first): texel (i, j)'s centre at
+    ((i + 0.5) / 2, (j + 0.5) / 2); halfway between all four centres the mean, 1.5; beyond the
+    centres the edge texels (clamp to edge)."""
+    tex = torch.tensor([[[0.0, 1.0], [2.0, 3.0]]])  # [1, H, W]
+    tc = torch.tensor([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.5, 0.5], [0.5, 0.25],
+                       [0.0, 0.0], [1.0, 1.0], [0.625, 0.25]])
+    assert torch.allclose(sample(tex, tc)[:, 0],
+                          torch.tensor([0.0, 1.0, 2.0, 1.5, 0.5, 0.0, 3.0, 0.75]))
+
+
+def test_closed_meshes_share_every_edge_twice():
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    assert closed(np.asarray(sphere.faces))
+    assert not closed(np.asarray(sphere.faces)[1:])  # a hole
+    assert not closed(quad(0.0, 0.0, 1.0)[1])
+
+
 def test_up_matrix_turns_up_onto_y():
     for up in ([0, 0, 1], [0, 0, -1], [1, 2, 3], [0, 1, 0]):
         M = up_matrix(tuple(up))
@@ -74,15 +101,17 @@ def test_up_matrix_turns_up_onto_y():
 
 
 def test_glb_round_trip_keeps_every_quantised_value(tmp_path):
-    layers, asset = two_layers()
+    asset = two_layers()
     asset.up = (0.0, 0.0, 1.0)
     write_asset(asset, tmp_path)
     back = read_asset(tmp_path)
     assert len(back.layers) == 2 and back.background == asset.background
-    for a, b in zip(layers, back.layers):
+    for a, b in zip(asset.layers, back.layers):
         assert np.array_equal(a.V, b.V) and np.array_equal(a.F, b.F)
-        assert np.array_equal(a.rgba, b.rgba) and np.array_equal(a.sh, b.sh)
-        assert a.sh_scale == b.sh_scale and a.level == b.level
+        assert np.array_equal(a.uv, b.uv) and a.level == b.level and a.closed == b.closed
+    assert np.array_equal(asset.atlas.base, back.atlas.base)
+    assert np.array_equal(asset.atlas.sh, back.atlas.sh)
+    assert asset.atlas.sh_scale == back.atlas.sh_scale
     meta = json.loads((tmp_path / "asset.json").read_text())
     assert meta["size_bytes"] == (tmp_path / "layers.glb").stat().st_size
 
@@ -97,7 +126,7 @@ def validate(glb: Path) -> dict:
 @pytest.mark.skipif(not (NODE and VALIDATOR.is_dir()) and not __import__("os").environ.get("CI"),
                     reason="needs node and `npm ci --prefix web` (the Khronos gltf-validator)")
 def test_khronos_validator_finds_no_error_in_the_glb(tmp_path):
-    _, asset = two_layers()
+    asset = two_layers()
     write_asset(asset, tmp_path)
     report = validate(tmp_path / "layers.glb")
     assert report["numErrors"] == 0, report["messages"]
@@ -129,9 +158,10 @@ def test_bake_writes_a_valid_asset_and_render_baked_scores_it(baked_run, tmp_pat
     from shells.pipeline import render_run
 
     meta = json.loads((baked_run / "baked" / "asset.json").read_text())
-    assert meta["format"] == "shells-baked-1" and meta["fit"]["steps"] == 8
+    assert meta["format"] == "shells-baked-2" and meta["fit"]["steps"] == 8
     assert [x["level"] for x in meta["layers"]] == [-2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0]
     assert 0 < meta["size_bytes"] <= 5e6
+    assert meta["atlas"]["width"] * meta["atlas"]["height"] * 13 <= 5e6
     asset = read_asset(baked_run / "baked")
     assert sum(len(x.F) for x in asset.layers) == meta["fit"]["triangles"] > 0
     m = render_run(baked_run, mode="baked", out=tmp_path / "r", progress=False)
@@ -180,7 +210,7 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
     that the blending order and the view-dependent term both show in the image."""
     import base64
 
-    from shells.baked import export_web, static_server
+    from shells.bake.run import export_web, static_server
     from shells.browser import Browser
     from shells.data.cameras import Cameras
 
@@ -188,7 +218,8 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
     run = tmp_path / "run"
     shutil.copytree(baked_run, run)
     asset = read_asset(run / "baked")
-    asset.layers = nested_spheres().layers
+    spheres = nested_spheres()
+    asset.layers, asset.atlas = spheres.layers, spheres.atlas
     write_asset(asset, run / "baked")
     out = tmp_path / "web"
     export_web(run, out)
@@ -209,7 +240,9 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
                                 "window.shells.pixels())")
             assert not b.console, b.console
             assert not b.failed, b.failed
-            assert b.requests and all(r.startswith(url) for r in b.requests), b.requests
+            # the page's own files, and the GLB's PNG images as blob: URLs made from it
+            assert b.requests and all(r.startswith((url, "blob:" + url)) for r in b.requests), \
+                b.requests
     finally:
         srv.shutdown()
     img = np.frombuffer(base64.b64decode(px["rgb"]), np.uint8).reshape(px["height"],
@@ -233,59 +266,65 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
     assert (counts[none] == 0).mean() > 0.98 and (counts[~none].sum(-1) > 0).mean() > 0.98
 
 
-def test_mesh_edges_are_unique_and_undirected():
-    from shells.train.bake import mesh_edges
-
-    F = np.array([[0, 1, 2], [0, 2, 3]])
-    assert mesh_edges(F).tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [2, 3]]
-
-
 def test_fit_recovers_a_flat_colour_and_an_opacity_through_the_averaged_rays():
-    """One opaque-ish quad in front of a camera, photographed as a flat colour over a black
-    background (a = 0.7, c = (0.2, 0.6, 0.4): pixel 0.14, 0.42, 0.28 where the quad covers
-    it): the fit, starting from grey at half opacity, recovers the pixels."""
+    """One quad in front of a camera, photographed as a flat colour over a black background
+    (a = 0.7, c = (0.2, 0.6, 0.4): pixel 0.14, 0.42, 0.28 where the quad covers it): the fit,
+    starting from grey at half opacity, recovers the pixels."""
+    from shells.bake.fit import BakeConfig, fit_textures
+    from shells.bake.render import shade
     from shells.data.camera_paths import look_at
     from shells.data.cameras import pinhole_cameras
-    from shells.render.baked import LayerAttributes
-    from shells.train.bake import BakeConfig, fit_layers
 
     V, F = quad(0.0, -1.0, 1.0)
+    uv = np.array([[0.1, 0.1], [0.9, 0.1], [0.9, 0.9], [0.1, 0.9]], np.float32)
     c2w = torch.stack([look_at(np.array([0.0, 0.0, -3.0]), np.zeros(3), np.array([0, 1.0, 0]))])
     cams = pinhole_cameras(c2w.float(), fx=13.0, width=16, height=16)  # edges mid-pixel
-    start = LayerAttributes(torch.tensor([[0.5, 0.5, 0.5, 0.5]] * 4), torch.zeros(4, 3, 3))
+    start = Textures(torch.full((8, 8, 4), 0.5), torch.zeros(8, 8, 3, 3))
     o, d = cams.pixel_rays(0, 4)
-    covered = LayerScene([(V, F)]).cast(o, d)[0].prim.reshape(-1, 4) >= 0
+    scene = LayerScene([(V, F, uv)])
+    covered = torch.isfinite(scene.cast(o, d)[0].t).reshape(-1, 4)
     share = covered.float().mean(1)  # the quad's coverage of each pixel
     pixel = torch.tensor([0.14, 0.42, 0.28])
     photo = (share[:, None] * pixel).reshape(1, 16, 16, 3)
     assert ((share > 0) & (share < 1)).any() and (share == 0).any()  # edges mid-pixel
     cfg = BakeConfig(steps=300, rays=4096, lr=0.05, smooth=0.0, spp=4)
-    (fitted,), rec = fit_layers([(V, F)], [start], [(cams, photo)], (0.0, 0.0, 0.0),
-                                cfg.steps, cfg)
+    fitted, rec = fit_textures([(V, F, uv)], start, np.ones((8, 8), bool), [(cams, photo)],
+                               (0.0, 0.0, 0.0), cfg)
     assert rec["pixels"] == int((share > 0).sum())  # pixels with a hit among their 4 rays
-    scene = LayerScene([(V, F)])
-    colour, _ = shade(scene.faces, [fitted], scene.cast(o, d), d, torch.zeros(3))
+    colour, _ = shade(fitted.stacked().permute(2, 0, 1), scene.cast(o, d), d, torch.zeros(3))
     image = colour.reshape(-1, 4, 3).mean(1)  # as shells-render --spp 4 draws the pixels
     assert float((image - photo.reshape(-1, 3)).abs().max()) < 0.02
 
 
 def nested_spheres(seed: int = 0) -> BakedAsset:
-    """Three nested spheres about the origin with random colours, opacities and SH terms."""
+    """Three nested spheres about the origin, unwrapped into one atlas (`unwrap`) with random
+    colours, opacities and SH terms: an 8 x 8 grid of random values bilinearly enlarged to the
+    atlas, so that they vary across the atlas (a wrong atlas coordinate shows) but little
+    between neighbouring texels (a pixel's sub-texel position, which a GPU rounds, does not)."""
     import trimesh
 
+    from shells.bake.layers import unwrap
+
     rng = np.random.default_rng(seed)
-    layers = []
-    for k, radius in enumerate((0.3, 0.45, 0.6)):
-        sphere = trimesh.creation.icosphere(subdivisions=3, radius=radius)
-        n = len(sphere.vertices)
-        rgba = np.concatenate([rng.uniform(0, 1, (n, 3)), rng.uniform(0.25, 0.8, (n, 1))], 1)
-        layers.append(quantise(k - 1.0, sphere.vertices, sphere.faces, torch.tensor(rgba),
-                               torch.tensor(rng.uniform(-0.5, 0.5, (n, 3, 3)))))
-    return BakedAsset(layers=layers, background=(1.0, 1.0, 1.0))
+    spheres = [trimesh.creation.icosphere(subdivisions=3, radius=r) for r in (0.3, 0.45, 0.6)]
+    meshes, (W, H), _ = unwrap([(np.asarray(s.vertices, np.float32), np.asarray(s.faces))
+                                for s in spheres], 0.02, 1024, 1e6)
+    def smooth(lo: float, hi: float, channels: int) -> torch.Tensor:
+        coarse = torch.tensor(rng.uniform(lo, hi, (1, channels, 8, 8))).float()
+        return torch.nn.functional.interpolate(coarse, size=(H, W), mode="bilinear",
+                                               align_corners=True)[0].permute(1, 2, 0)
+
+    rgba = torch.cat([smooth(0, 1, 3), smooth(0.25, 0.8, 1)], 2)
+    sh = smooth(-0.5, 0.5, 9).reshape(H, W, 3, 3)
+    # closed before the unwrap: the atlas splits the vertices along its seams
+    layers = [Layer(k - 1.0, V, F.astype(np.uint32), uv, closed(np.asarray(sph.faces)))
+              for k, ((V, F, uv), sph) in enumerate(zip(meshes, spheres))]
+    return BakedAsset(layers=layers, atlas=quantise(Textures(rgba, sh)),
+                      background=(1.0, 1.0, 1.0))
 
 
 def test_the_drjit_renderer_matches_the_torch_reference():
-    from shells.render.baked import render_baked_drjit
+    from shells.bake.render import render_baked_drjit
 
     scene = LayerScene.of(nested_spheres())
     g = torch.Generator().manual_seed(1)
@@ -297,15 +336,48 @@ def test_the_drjit_renderer_matches_the_torch_reference():
     fast = torch.stack([colour.x.torch(), colour.y.torch(), colour.z.torch()], 1)
     assert torch.equal(torch.from_numpy(np.asarray(drawn)).long(), ref_drawn.long())
     assert (ref_drawn >= 2).float().mean() > 0.5  # most rays cross several layers
-    assert torch.allclose(fast, ref, atol=1e-5)
+    # bilinear weights from texel coordinates of ~200: float32 rounding of ~200 * 1.2e-7
+    assert torch.allclose(fast, ref, atol=1e-4)
 
 
-def test_max_triangles_simplifies_the_layers(baked_run, tmp_path):
-    from shells.cli import bake_main
+def test_unwrapped_layers_keep_their_surface_and_the_texel_map_finds_it():
+    """Atlas coordinates in [0, 1], every texel of the map on its layer's sphere (radius by
+    layer), charts apart (each texel in one layer), and dilation fills the rest."""
+    from shells.bake.layers import dilate, texel_map
 
-    run = tmp_path / "run"
-    shutil.copytree(baked_run, run)
-    full = json.loads((run / "baked" / "asset.json").read_text())["fit"]["triangles"]
-    assert bake_main([str(run), "--steps", "2", "--max-triangles", str(full // 3)]) == 0
-    fit = json.loads((run / "baked" / "asset.json").read_text())["fit"]
-    assert 0 < fit["triangles"] <= 1.05 * full // 3
+    asset = nested_spheres()
+    W, H = asset.atlas.size
+    meshes = [(x.V, x.F.astype(np.int64), x.uv) for x in asset.layers]
+    assert all(x.closed for x in asset.layers)
+    for V, F, uv in meshes:
+        assert uv.min() > 0 and uv.max() < 1
+    tmap = texel_map(meshes, (W, H))
+    assert 0.3 < tmap.inside.mean() < 0.95
+    for k, r in enumerate((0.3, 0.45, 0.6)):
+        radius = np.linalg.norm(tmap.point[tmap.layer == k], axis=1)
+        assert len(radius) > 1000 and np.all(np.abs(radius - r) < 0.01 * r)
+    values = torch.from_numpy(np.where(tmap.inside, tmap.layer, -5)[..., None]).float()
+    filled = dilate(values, tmap.inside)
+    assert (filled >= 0).all() and torch.equal(filled[tmap.inside], values[tmap.inside])
+
+
+def test_decimation_stays_within_its_tolerance_of_the_level_set():
+    """A sphere of radius 0.5 from marching cubes, decimated against its exact SDF: more
+    tolerance, fewer triangles, and the kept triangles within the tolerance (99th percentile)
+    of the sphere."""
+    import trimesh
+
+    from shells.bake.layers import simplify, surface_error
+
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.5)
+    V, F = np.asarray(sphere.vertices, np.float32), np.asarray(sphere.faces, np.int64)
+
+    def sdf(x):
+        return np.linalg.norm(x, axis=1) - 0.5
+
+    counts = []
+    for tol in (1e-4, 2e-3, 1e-2):
+        V2, F2, share = simplify(V, F, sdf, tol)
+        assert surface_error(V2, F2, sdf) <= surface_error(V, F, sdf) + tol
+        counts.append(len(F2))
+    assert counts[0] > counts[1] > counts[2] and counts[2] < 0.1 * len(F)

@@ -12,6 +12,7 @@ subpackage at the same layer):
     4 fields/       hash grid, networks, NeuS, contraction
     5 levelset/, deform/
     6 render/
+  6.5 bake/         baked layers: format, renderer, layers, fit (bake/run: run level, as 9)
     7 run           the run directory (builds fields, shells); presets (data + preset -> Config)
     8 train/        the shared loop, stage 1, stage 2, health
     9 pipeline      run-level extraction and rendering, the demo; viewer
@@ -35,14 +36,15 @@ RANKS = {
     "shells.fields": 4,
     "shells.levelset": 5, "shells.deform": 5,
     "shells.render": 6,
+    "shells.bake": 6.5,  # format, render, layers, fit: the field and the shells come as values
     "shells.run": 7, "shells.presets": 7,
     "shells.train": 8,
-    "shells.pipeline": 9, "shells.viewer": 9, "shells.baked": 9,
+    "shells.pipeline": 9, "shells.viewer": 9, "shells.bake.run": 9,
     "shells.cli": 10,
     "bench": 11,
 }
 PACKAGES = ("shells.data", "shells.fields", "shells.levelset", "shells.deform", "shells.render",
-            "shells.train", "scenes", "bench")
+            "shells.bake", "shells.train", "scenes", "bench")
 
 
 def module_name(path: Path) -> str:

@@ -16,9 +16,9 @@ Per batch of rays (§3.4, §4.2):
           (`_composite_rounds`); with render.band_peel_step it peels that many M+ hits of
           every ray, shades them, and peels on only the rays still letting light through
           (`_render_band_on_demand`).
-    baked: the baked layer meshes (`shells.render.baked`): each layer's nearest hit, its
+    baked: the baked layer meshes (`shells.bake.render`): each layer's nearest hit, its
           interpolated colour and opacity blended in the layers' fixed order; ``scene`` is then
-          a `shells.render.baked.LayerScene` and the field is not used.
+          a `shells.bake.render.LayerScene` and the field is not used.
     occupancy: occupancy-grid ray marching with empty-space skipping and early termination
           (the Instant-NGP / nerfacc baseline, shells.render.occupancy): same NeuS alpha and
           compositing, in rounds of cfg.occ_chunk samples per ray.
@@ -124,10 +124,8 @@ def render_rays(field: Any,  # Dr.Jit field: eval(x, d) -> FieldSample
             raise InputError("full mode needs the scene box: pass aabb [2, 3]")
         return render_intervals(field, o, d, box_intervals(o, d, aabb), cfg, background,
                                 fixed=cfg.full_samples)[:2]
-    if mode == "baked":
-        from shells.render.baked import render_baked_drjit
-
-        return render_baked_drjit(scene, o, d, background)
+    if mode == "baked":  # scene: a shells.bake.render.LayerScene, which renders itself
+        return scene.render(o, d, background)
     if mode == "occupancy":
         colour, _, count = render_occupancy(field, o, d, cfg, aabb, background)
         return colour, count

@@ -1,13 +1,16 @@
 // The baked-shells viewer: draws layers.glb (shells-bake) with three.js, the compositing rule
-// of shells/render/baked.py on the GPU (or a software GL): for each layer, innermost first, a
+// of shells/bake/render.py on the GPU (or a software GL): for each layer, innermost first, a
 // depth pass (the layer's nearest fragment, any facing, behind nothing drawn before) and a
 // colour pass that keeps only the fragment at that depth and blends it "over":
 //     C = a * clamp(base + sh . d, 0, 1) + (1 - a) * C
-// with d the unit view direction in the asset's frame. Per vertex: COLOR_0 (base RGB, opacity),
-// _SHR/_SHG/_SHB (degree-1 SH axes of each channel, signed bytes scaled by the layer's sh_scale).
+// with d the unit view direction in the asset's frame. The layers share one texture atlas
+// (TEXCOORD_0): the material's baseColorTexture (base RGB, opacity) and three RGB images of the
+// degree-1 SH axes x, y, z (the materials' extras: sh_textures, sh_scale), sampled bilinearly.
 //
 // URL parameters: view=I (start on test view I of cameras.json, its intrinsics and size),
-// width=W&height=H (canvas size; default: the window, or the view's size), show=layers.
+// width=W&height=H (canvas size; default: the window, or the view's size), show=layers,
+// msaa=0 (one sample a pixel), cull=1 (back faces of closed layers culled: not the rule
+// where a ray's nearest hit on a closed layer is a back face, i.e. from inside it).
 // window.shells exposes what the tests and bench/ measure (ready, setView, pixels, benchmark).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
@@ -27,23 +30,13 @@ precision highp float;
 uniform mat4 modelViewMatrix;
 uniform mat4 projectionMatrix;
 uniform vec3 eye;            // camera position in the asset's frame
-uniform float shScale;
 in vec3 position;
-in vec4 color;
-in vec4 _shr;
-in vec4 _shg;
-in vec4 _shb;
-out vec4 vBase;
+in vec2 uv;
+out vec2 vUv;
 out vec3 vToPoint;
-out vec3 vShR;
-out vec3 vShG;
-out vec3 vShB;
 invariant gl_Position;       // the depth and colour passes must produce the same depths
 void main() {
-  vBase = color;
-  vShR = _shr.xyz * shScale;
-  vShG = _shg.xyz * shScale;
-  vShB = _shb.xyz * shScale;
+  vUv = uv;
   vToPoint = position - eye;
   gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
 }`;
@@ -66,19 +59,24 @@ void main() { outColor = vec4(0.0); }`;
 
 const FRAGMENT = /* glsl */ `
 precision highp float;
-in vec4 vBase;
+uniform sampler2D baseMap;
+uniform sampler2D shX;
+uniform sampler2D shY;
+uniform sampler2D shZ;
+uniform float shScale;
+in vec2 vUv;
 in vec3 vToPoint;
-in vec3 vShR;
-in vec3 vShG;
-in vec3 vShB;
 out vec4 outColor;
 void main() {
 #ifdef COUNT
   outColor = vec4(1.0 / 255.0, 0.0, 0.0, 1.0);
 #else
   vec3 d = normalize(vToPoint);
-  vec3 c = clamp(vBase.rgb + vec3(dot(vShR, d), dot(vShG, d), dot(vShB, d)), 0.0, 1.0);
-  outColor = vec4(c, vBase.a);
+  vec4 base = texture(baseMap, vUv);
+  float k = 255.0 / 127.0 * shScale, o = 128.0 / 127.0 * shScale;  // (byte - 128) / 127 * scale
+  vec3 sh = (texture(shX, vUv).rgb * k - o) * d.x + (texture(shY, vUv).rgb * k - o) * d.y
+          + (texture(shZ, vUv).rgb * k - o) * d.z;
+  outColor = vec4(clamp(base.rgb + sh, 0.0, 1.0), base.a);
 #endif
 }`;
 
@@ -88,7 +86,12 @@ const viewSelect = document.getElementById('view');
 
 const [asset, cams] = await Promise.all(
   ['asset.json', 'cameras.json'].map((f) => fetch(f).then((r) => r.json())));
-const gltf = await new GLTFLoader().loadAsync(asset.glb);
+const gltf = await new GLTFLoader().loadAsync(asset.glb, (e) => {  // the progress bar, in MB
+  const total = e.lengthComputable ? e.total : asset.size_bytes;
+  fpsText.textContent = `loading ${(e.loaded / 1e6).toFixed(1)} / ${(total / 1e6).toFixed(1)} MB`;
+  document.getElementById('progress').value = total ? e.loaded / total : 0;
+});
+document.getElementById('progress').style.display = 'none';
 
 // multisampling as the asset was fitted (shells-render --spp 4 averages a 2x2 grid of rays);
 // msaa=0 draws one sample a pixel, as shells-render --spp 1
@@ -107,8 +110,27 @@ const toGltf = new THREE.Matrix4().fromArray(cams.world_to_gltf.flat()).transpos
 const fromGltf = toGltf.clone().invert();
 const centre = new THREE.Vector3(...cams.centre).applyMatrix4(toGltf);
 
+// the atlas: the base colour texture of the materials, the SH images of their extras; raw
+// values (no colour-space decoding), bilinear, no mipmaps, as the Python renderer samples them
+let anyMaterial = null;
+gltf.scene.traverse((o) => { if (o.isMesh) anyMaterial = o.material; });
+const shExtras = anyMaterial.userData;
+const atlas = [anyMaterial.map, ...await Promise.all(
+  shExtras.sh_textures.map((i) => gltf.parser.getDependency('texture', i)))];
+for (const t of atlas) {
+  t.colorSpace = THREE.NoColorSpace;
+  t.generateMipmaps = false;
+  t.minFilter = THREE.LinearFilter;
+  t.magFilter = THREE.LinearFilter;
+  t.needsUpdate = true;
+}
+
 // two meshes per layer sharing its geometry: depth pass, then colour (or count) pass
+const cull = params.get('cull') === '1';
 const uniforms = { eye: { value: new THREE.Vector3() } };
+const shared = { eye: uniforms.eye, shScale: { value: shExtras.sh_scale },
+                 baseMap: { value: atlas[0] }, shX: { value: atlas[1] }, shY: { value: atlas[2] },
+                 shZ: { value: atlas[3] } };
 const scene = new THREE.Scene();
 const colourMaterials = [];
 const countMaterials = [];
@@ -116,14 +138,14 @@ const colourPasses = [];  // the second mesh of each layer: colour or count mate
 const layers = [];
 root.traverse((o) => { if (o.isMesh) layers.push(o); });
 layers.sort((a, b) => a.userData.layer - b.userData.layer);  // innermost first
-let bytes = 0;
+let bytes = atlas.reduce((n, t) => n + t.image.width * t.image.height * 4, 0);
 layers.forEach((mesh, k) => {
   const geometry = mesh.geometry;
   for (const name of Object.keys(geometry.attributes)) bytes += geometry.attributes[name].array.byteLength;
   bytes += geometry.index.array.byteLength;
-  const shared = { eye: uniforms.eye, shScale: { value: mesh.userData.sh_scale } };
+  const side = cull && mesh.userData.closed ? THREE.FrontSide : THREE.DoubleSide;
   const base = { glslVersion: THREE.GLSL3, vertexShader: VERTEX, fragmentShader: FRAGMENT,
-                 uniforms: shared, side: THREE.DoubleSide, transparent: false };
+                 uniforms: shared, side, transparent: false };
   const depth = new THREE.RawShaderMaterial({ ...base, vertexShader: DEPTH_VERTEX,
                                               fragmentShader: DEPTH_FRAGMENT, colorWrite: false,
                                               depthWrite: true, depthFunc: THREE.LessEqualDepth });
@@ -288,7 +310,7 @@ function benchmark(frames = 60, width = cams.width, height = cams.height) {
     ms.push(performance.now() - t0);
   }
   const sorted = [...ms].sort((a, b) => a - b);
-  return { frames, width, height, median_ms: sorted[Math.floor(frames / 2)], ms,
+  return { frames, width, height, median_ms: sorted[Math.floor(frames / 2)], ms, msaa, cull,
            renderer: gl.getParameter(gl.VERSION) + ' / ' + (() => {
              const ext = gl.getExtension('WEBGL_debug_renderer_info');
              return ext ? gl.getParameter(ext.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
@@ -319,7 +341,8 @@ let last = performance.now(), smooth = 0;
 const triangles = layers.reduce((n, m) => n + m.geometry.index.count / 3, 0);
 function hud(ms) {
   fpsText.textContent = `${(1000 / ms).toFixed(1)} fps · ${layers.length} layers · ` +
-    `${(triangles / 1e6).toFixed(2)} M triangles · ${(bytes / 1e6).toFixed(1)} MB`;
+    `${(triangles / 1e3).toFixed(1)} k triangles · atlas ${atlas[0].image.width}×` +
+    `${atlas[0].image.height} · ${(bytes / 1e6).toFixed(1)} MB on the GPU`;
 }
 function loop() {
   render();

@@ -1,6 +1,6 @@
 """Run-level baking, the offline web export and the client-side viewer of a baked asset.
 
-    bake_run    RUN -> RUN/baked/{layers.glb, asset.json} (`shells.train.bake`), all or nothing
+    bake_run    RUN -> RUN/baked/{layers.glb, asset.json} (`shells.bake.fit`), all or nothing
     export_web  RUN/baked -> a folder that works offline: index.html and viewer.js (this package's
                 webviewer/), three.js and its loader and controls (the npm package, copied),
                 layers.glb, asset.json, cameras.json (the test views, for comparisons)
@@ -27,7 +27,7 @@ from shells.files import commit_files, staged_dir, write_json
 from shells.run import (RunDir, load_field, load_shells, read_run, require_bounded,
                         shell_meshes)
 
-WEBVIEWER = Path(__file__).parent / "webviewer"
+WEBVIEWER = Path(__file__).resolve().parent.parent / "webviewer"
 # the files of the npm package `three` an export needs, by their place in the package
 THREE_FILES = ("build/three.module.js", "build/three.core.js",
                "examples/jsm/loaders/GLTFLoader.js", "examples/jsm/utils/BufferGeometryUtils.js",
@@ -38,12 +38,13 @@ THREE_FILES = ("build/three.module.js", "build/three.core.js",
 def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
              resolution: int | None = None, size_mb: float | None = None,
              steps: int | None = None, teacher_views: int | None = None,
-             max_triangles: int | None = None, progress: bool = False) -> dict[str, Any]:
+             tolerance_px: float | None = None, texel_px: float | None = None,
+             progress: bool = False) -> dict[str, Any]:
     """Bake RUN's stage-2 field into RUN/baked (module docstring); returns asset.json's record."""
+    from shells.bake.fit import BakeConfig, bake
+    from shells.bake.format import write_asset
     from shells.data.camera_paths import scene_frame
     from shells.data.datasets import load_dataset
-    from shells.render.baked import write_asset
-    from shells.train.bake import BakeConfig, bake
 
     run = RunDir(run_dir)
     meta = read_run(run)
@@ -51,26 +52,29 @@ def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
     if not run.checkpoint("stage2").is_file():
         raise InputError(f"{run.checkpoint('stage2')}: no stage-2 checkpoint; run "
                          f"shells-finetune {run.root} first")
-    outer, inner = shell_meshes(run)
     cfg = BakeConfig()
     for name, value in (("levels", levels), ("size_mb", size_mb), ("steps", steps),
-                        ("teacher_views", teacher_views), ("max_triangles", max_triangles)):
+                        ("teacher_views", teacher_views), ("tolerance_px", tolerance_px),
+                        ("texel_px", texel_px)):
         if value is not None:
             setattr(cfg, name, tuple(value) if name == "levels" else value)
-    if max_triangles is not None and max_triangles < 100:
-        raise InputError(f"--max-triangles {max_triangles}: must be at least 100")
     if teacher_views is not None and teacher_views < 0:
         raise InputError(f"--teacher-views {teacher_views}: must be >= 0")
+    if cfg.tolerance_px < 0 or not cfg.texel_px > 0:
+        raise InputError(f"--tolerance {cfg.tolerance_px} / --texel {cfg.texel_px}: need a "
+                         "tolerance >= 0 and a texel size > 0 (training-pixel footprints)")
     if cfg.size_mb <= 0 or cfg.steps < 1 or not cfg.levels or 0.0 not in cfg.levels:
         raise InputError(f"--size-mb {cfg.size_mb} / --steps {cfg.steps} / --levels "
                          f"{list(cfg.levels)}: need a positive size, at least one step and "
                          "levels that include 0 (the surface)")
+    outer, inner = shell_meshes(run)
     field, fcfg = load_field(run.root, stage="stage2")
     bg = tuple(fcfg.data.background)
     data = load_dataset(meta["data"], "train", downscale=int(meta["downscale"]), background=bg)
     aabb = field.aabb.cpu().numpy().astype(np.float64)
-    res = int(resolution or pixel_resolution(data.cameras, aabb, fcfg.shell.resolution,
-                                             cfg.cells_per_pixel))
+    footprint = pixel_footprint(data.cameras, aabb)
+    cells = float(np.max(aabb[1] - aabb[0])) / footprint * cfg.cells_per_pixel
+    res = int(resolution or min(fcfg.shell.resolution, max(16, math.ceil(cells))))
     if res < 16:
         raise InputError(f"--resolution {res}: must be at least 16")
     h = float((aabb[1] - aabb[0]).max()) / (res - 1)
@@ -81,8 +85,8 @@ def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
                  else int(cfg.teacher_views))
     if n_teacher > 0:
         views.append(render_teacher(run, field, fcfg, data, n_teacher, progress))
-    asset = bake(field, aabb, outer, inner, views, bg, up, res, band, cfg, fcfg.render.variant,
-                 progress)
+    asset = bake(field, aabb, outer, inner, views, bg, up, res, band, footprint, cfg,
+                 fcfg.render.variant, progress)
     asset.meta["source"] = {"run": str(run.root), "stage": "stage2",
                             "data": str(meta["data"]), "downscale": int(meta["downscale"])}
     with staged_dir(run.baked, "shells-bake") as tmp:
@@ -93,23 +97,21 @@ def bake_run(run_dir: str | Path, levels: tuple[float, ...] | None = None,
 
 
 def bake_summary(record: dict[str, Any]) -> str:
-    """One line of asset.json's record: layers, triangles, size, fit PSNR, time."""
-    fit = record["fit"]
-    return (f"baked {len(record['layers'])} layers, {fit['triangles']} triangles, "
-            f"{record['size_bytes'] / 1e6:.1f} MB, training PSNR {fit['train_psnr_last']:.2f} dB, "
-            f"{fit['seconds']:.0f} s")
+    """One line of asset.json's record: layers, triangles, atlas, size, fit PSNR, time."""
+    fit, atlas = record["fit"], record["atlas"]
+    return (f"baked {len(record['layers'])} layers, {fit['triangles']} triangles, atlas "
+            f"{atlas['width']}x{atlas['height']}, {record['size_bytes'] / 1e6:.1f} MB, training "
+            f"PSNR {fit['train_psnr_last']:.2f} dB, {fit['seconds']:.0f} s")
 
 
-def pixel_resolution(cams: Any, aabb: np.ndarray, cap: int, cells_per_pixel: float) -> int:
-    """The layer grid with ``cells_per_pixel`` cells across one training pixel's footprint at
-    the scene centre (the median camera's), at most ``cap``: vertices much finer than the
-    photos' pixels are seen by too few rays to be fitted, much coarser ones blur the texture."""
+def pixel_footprint(cams: Any, aabb: np.ndarray) -> float:
+    """A training pixel's size at the scene centre (the median camera's): the unit of the
+    bake's grid, texels and decimation tolerance (finer than the photos' pixels is seen by too
+    few rays to be fitted, much coarser blurs the texture)."""
     from shells.data.camera_paths import scene_frame
 
     _, _, radius, _ = scene_frame(cams, aabb)
-    footprint = radius / float(torch.median(cams.fx))
-    cells = float(np.max(aabb[1] - aabb[0])) / footprint * cells_per_pixel
-    return int(min(cap, max(16, math.ceil(cells))))
+    return float(radius / float(torch.median(cams.fx)))
 
 
 def turned_cameras(cams: Any, aabb: Any, n: int, seed: int = 0) -> Any:
@@ -157,7 +159,7 @@ def three_dir(explicit: str | Path | None = None) -> Path:
     candidates = [Path(explicit)] if explicit else []
     if os.environ.get("SHELLS_THREE"):
         candidates.append(Path(os.environ["SHELLS_THREE"]))
-    candidates.append(Path(__file__).resolve().parent.parent / "web" / "node_modules" / "three")
+    candidates.append(Path(__file__).resolve().parents[2] / "web" / "node_modules" / "three")
     for c in candidates:
         if all((c / f).is_file() for f in THREE_FILES):
             return c
@@ -169,8 +171,8 @@ def three_dir(explicit: str | Path | None = None) -> Path:
 def export_web(run_dir: str | Path, out: str | Path, three: str | Path | None = None,
                split: str = "test") -> dict[str, Any]:
     """A self-contained, offline viewer folder of RUN/baked at ``out`` (module docstring)."""
+    from shells.bake.format import read_asset, up_matrix
     from shells.data.datasets import load_dataset
-    from shells.render.baked import read_asset, up_matrix
 
     run = RunDir(run_dir)
     meta = read_run(run)
