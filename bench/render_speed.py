@@ -468,13 +468,16 @@ def baked_bench(args: argparse.Namespace) -> dict[str, Any]:
         try:
             for gl in args.gl:
                 with Browser(gl=gl, offline=True, timeout=600) as b:
-                    b.open(url, ready="window.shells && window.shells.ready", timeout=600)
-                    for size in args.sizes:
-                        r = b.evaluate(f"window.shells.benchmark({args.frames}, {size}, {size})",
-                                       timeout=1800)
-                        out["browser"][f"{gl} {size}x{size}"] = {
-                            "median_ms": r["median_ms"], "fps": 1000.0 / r["median_ms"],
-                            "frames": r["frames"], "renderer": r["renderer"]}
+                    for variant in args.variants:  # the viewer's URL options
+                        b.open(url + (f"&{variant}" if variant else ""),
+                               ready="window.shells && window.shells.ready", timeout=600)
+                        for size in args.sizes:
+                            r = b.evaluate(f"window.shells.benchmark({args.frames}, {size}, "
+                                           f"{size})", timeout=1800)
+                            key = " ".join(x for x in (gl, f"{size}x{size}", variant) if x)
+                            out["browser"][key] = {
+                                "median_ms": r["median_ms"], "fps": 1000.0 / r["median_ms"],
+                                "frames": r["frames"], "renderer": r["renderer"]}
                     out["browser"]["triangles"] = b.evaluate("window.shells.triangles")
         finally:
             srv.shutdown()
@@ -521,6 +524,9 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--frames", type=int, default=60, help="frames of the browser's orbit")
     g.add_argument("--gl", nargs="+", default=["llvmpipe", "swiftshader"],
                    choices=["llvmpipe", "swiftshader"], help="Chromium's software GL")
+    g.add_argument("--variants", nargs="+", default=[""], metavar="QUERY",
+                   help="viewer URL options to time, each a variant (e.g. '' 'cull=1' "
+                        "'msaa=0'; default: the viewer as it opens)")
     p.add_argument("--json", default=None,
                    help="--refine, --cast-only, --baked: also write JSON here")
     args = p.parse_args(argv)

@@ -122,7 +122,7 @@ def baked(args: argparse.Namespace) -> int:
     import tempfile
     import threading
 
-    from shells.baked import export_web, static_server
+    from shells.bake.run import export_web, static_server
     from shells.browser import Browser
 
     with tempfile.TemporaryDirectory() as tmp:

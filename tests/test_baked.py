@@ -224,8 +224,9 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
     out = tmp_path / "web"
     export_web(run, out)
     rec = export_web(run, out)  # again, over the first export
-    assert {"index.html", "viewer.js", "layers.glb", "asset.json", "cameras.json",
-            "lib/three.module.js", "lib/jsm/loaders/GLTFLoader.js"} <= set(rec["files"])
+    assert {"index.html", "viewer.js", "pixels.js", "stock.html", "stock.js", "layers.glb",
+            "asset.json", "cameras.json", "lib/three.module.js",
+            "lib/jsm/loaders/GLTFLoader.js"} <= set(rec["files"])
     srv = static_server(out, "127.0.0.1", 0)
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     url = f"http://127.0.0.1:{srv.server_address[1]}/"
@@ -238,6 +239,9 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
                             "window.shells.pixels())")
             layers = b.evaluate("(window.shells.setShow('layers'), window.shells.render(), "
                                 "window.shells.pixels())")
+            # the same file in a stock three.js scene: GLTFLoader, the file's own materials
+            b.open(url + "stock.html?view=0&key=255,0,255", ready="window.stock && window.stock.ready")
+            stock = b.evaluate("window.stock.pixels()")
             assert not b.console, b.console
             assert not b.failed, b.failed
             # the page's own files, and the GLB's PNG images as blob: URLs made from it
@@ -264,6 +268,14 @@ def test_the_browser_draws_what_the_python_renderer_draws_offline(baked_run, tmp
     counts = np.frombuffer(base64.b64decode(layers["rgb"]), np.uint8).reshape(img.shape)
     none = drawn.reshape(img.shape[:2]).numpy() == 0
     assert (counts[none] == 0).mean() > 0.98 and (counts[~none].sum(-1) > 0).mean() > 0.98
+    # the stock scene shows the object where the baked render does: silhouettes against a
+    # magenta key colour (pixels more than 0.05 away from it), intersection over union
+    key = torch.tensor([1.0, 0.0, 1.0])
+    keyed, _ = render_baked(LayerScene.of(asset), o, d, tuple(key.tolist()))
+    ours = (keyed - key).abs().max(1).values.reshape(img.shape[:2]).numpy() > 0.05
+    theirs = np.frombuffer(base64.b64decode(stock["rgb"]), np.uint8).reshape(img.shape)
+    theirs = np.abs(theirs / 255.0 - key.numpy()).max(-1) > 0.05
+    assert ours.sum() > 20 and (ours & theirs).sum() / (ours | theirs).sum() >= 0.9
 
 
 def test_fit_recovers_a_flat_colour_and_an_opacity_through_the_averaged_rays():
@@ -381,3 +393,26 @@ def test_decimation_stays_within_its_tolerance_of_the_level_set():
         assert surface_error(V2, F2, sdf) <= surface_error(V, F, sdf) + tol
         counts.append(len(F2))
     assert counts[0] > counts[1] > counts[2] and counts[2] < 0.1 * len(F)
+
+
+def test_transparent_triangles_are_found_by_their_texels_and_corners():
+    """A quad's two triangles on an 8 x 8 atlas whose texels are transparent but for one: the
+    triangle over that texel is visible, and so is one whose corner alone reads it (smaller
+    than a texel); the rest are not."""
+    from shells.bake.fit import visible_triangles
+    from shells.bake.layers import texel_map
+
+    V, F = quad(0.0, -1.0, 1.0)
+    uv = np.array([[0.05, 0.05], [0.95, 0.05], [0.95, 0.95], [0.05, 0.95]], np.float32)
+    tiny = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0]], np.float32)
+    tiny_uv = np.array([[0.5625, 0.0625], [0.57, 0.0625], [0.5625, 0.07]], np.float32)
+    meshes = [(V, F, uv), (tiny, np.array([[0, 1, 2]]), tiny_uv)]
+    tmap = texel_map(meshes, (8, 8))
+    rgba = torch.zeros(8, 8, 4)
+    rgba[1, 6, 3] = 1.0  # texel (x 6, y 1): inside triangle 0 (x > y), not triangle 1 (x < y)
+    rgba[0, 4, 3] = 1.0  # the tiny triangle's corner sits on texel (4, 0)'s centre
+    tex = Textures(rgba, torch.zeros(8, 8, 3, 3))
+    keep = visible_triangles(meshes, tex, tmap, 1.5 / 255)
+    assert keep[0].tolist() == [True, False] and keep[1].tolist() == [True]
+    rgba[0, 4, 3] = 0.0
+    assert visible_triangles(meshes, tex, tmap, 1.5 / 255)[1].tolist() == [False]

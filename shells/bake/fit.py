@@ -24,7 +24,7 @@ import torch
 
 from shells.bake.format import BakedAsset, Layer, Textures, closed, quantise
 from shells.bake.layers import (Grid, TexelMap, dilate, level_sets, sample_field, simplify,
-                                texel_map, unwrap)
+                                subset, texel_map, unwrap)
 from shells.bake.render import LayerHits, LayerScene, shade
 from shells.errors import InputError
 from shells.progress import tqdm
@@ -54,6 +54,7 @@ class BakeConfig:
     # added to the photos (None: teacher_per_view per training view; 0: none): they hold the
     # texels that the photos alone leave free
     teacher_per_view: int = 4
+    prune_alpha: float = 1.5 / 255  # a triangle whose texels all stay below this opacity goes
     seed: int = 0
 
 
@@ -204,6 +205,26 @@ def fit_textures(meshes: list[tuple[np.ndarray, np.ndarray, np.ndarray]], start:
         "train_psnr_last": float(np.mean(psnrs[-10:])) if psnrs else None}
 
 
+def visible_triangles(meshes: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                      tex: Textures, tmap: TexelMap, threshold: float) -> list[np.ndarray]:
+    """Per layer, the triangles [m] bool with an opacity of at least ``threshold`` somewhere:
+    at a texel of theirs in the atlas, or at their corners or centroid (bilinear look-ups, for
+    triangles smaller than a texel)."""
+    from shells.bake.render import sample
+
+    alpha = tex.rgba[..., 3]
+    out = []
+    for k, (V, F, uv) in enumerate(meshes):
+        most = np.zeros(len(F), np.float32)
+        sel = tmap.layer == k
+        np.maximum.at(most, tmap.prim[sel], alpha.numpy()[sel])
+        T = torch.from_numpy(uv[F])  # [m, 3, 2]
+        for tc in (T[:, 0], T[:, 1], T[:, 2], T.mean(1)):
+            most = np.maximum(most, sample(alpha[None], tc)[:, 0].numpy())
+        out.append(most >= threshold)
+    return out
+
+
 def bake(field: Any, aabb: np.ndarray, outer: tuple[np.ndarray, np.ndarray],
          inner: tuple[np.ndarray, np.ndarray] | None, views: list[tuple[Any, torch.Tensor]],
          background: tuple[float, float, float], up: tuple[float, float, float],
@@ -230,16 +251,22 @@ def bake(field: Any, aabb: np.ndarray, outer: tuple[np.ndarray, np.ndarray],
     start = distilled_start(field, tmap, grid, cfg.levels)
     tex, rec = fit_textures(meshes, start, tmap.inside, views, background, cfg, variant,
                             progress, tmap.layer)
+    # triangles left transparent are dropped (the atlas keeps its charts: the coordinates of the
+    # others do not move); closed: of the meshes before the unwrap, which splits their vertices
+    # along seams but keeps the order of their triangles
+    keep = visible_triangles(meshes, tex, tmap, cfg.prune_alpha)
+    kept = [subset(V, F[m], uv) + (F0[m],) for (V, F, uv), (_, F0), m in
+            zip(meshes, simplified, keep)]
     asset = BakedAsset(
-        # closed: of the meshes before the unwrap, which splits their vertices along seams
         layers=[Layer(c, V, F.astype(np.uint32), uv, closed(F0))
-                for (V, F, uv), (_, F0), c in zip(meshes, simplified, levels)],
+                for (V, F, uv, F0), c in zip(kept, levels)],
         atlas=quantise(tex), background=tuple(float(x) for x in background),
         up=tuple(float(x) for x in up))
     asset.meta = {"fit": {
         "levels": levels, "resolution": int(resolution),
         "triangles_marching_cubes": [int(len(F)) for _, F in full],
-        "triangles": sum(len(F) for _, F, _ in meshes),
+        "triangles_decimated": [int(len(F)) for _, F, _ in meshes],
+        "triangles": sum(int(m.sum()) for m in keep),
         "tolerance": cfg.tolerance_px * footprint, "texel": texel, "footprint": footprint,
         "atlas_texels_in_charts": int(tmap.inside.sum()), "training_pixels": rec["pixels"],
         "spp": cfg.spp, "steps": rec["steps"], "rays_per_step": cfg.rays,

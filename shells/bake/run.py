@@ -1,8 +1,9 @@
 """Run-level baking, the offline web export and the client-side viewer of a baked asset.
 
     bake_run    RUN -> RUN/baked/{layers.glb, asset.json} (`shells.bake.fit`), all or nothing
-    export_web  RUN/baked -> a folder that works offline: index.html and viewer.js (this package's
-                webviewer/), three.js and its loader and controls (the npm package, copied),
+    export_web  RUN/baked -> a folder that works offline: index.html and viewer.js (shells/
+                webviewer/; stock.html: the file in a stock three.js scene, for checking it),
+                three.js and its loader and controls (the npm package, copied),
                 layers.glb, asset.json, cameras.json (the test views, for comparisons)
     serve       a static HTTP server on an export (shells-view RUN --baked): the browser draws
                 the asset; nothing is rendered on the server
@@ -188,7 +189,7 @@ def export_web(run_dir: str | Path, out: str | Path, three: str | Path | None = 
                         background=asset.background)
     cams = data.cameras
     with staged_dir(out, "shells-export") as tmp:
-        for f in ("index.html", "viewer.js"):
+        for f in ("index.html", "viewer.js", "pixels.js", "stock.html", "stock.js"):
             shutil.copyfile(WEBVIEWER / f, tmp / f)
         lib = tmp / "lib"
         for f in THREE_FILES:

@@ -14,6 +14,7 @@
 // window.shells exposes what the tests and bench/ measure (ready, setView, pixels, benchmark).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { pixels as readPixels } from './pixels.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
 THREE.ColorManagement.enabled = false;  // the stored colours are display values: no conversion
@@ -275,21 +276,7 @@ function finish() {  // wait for the GPU: a one-pixel read back
   gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
 }
 
-function pixels() {  // the canvas as RGB rows, top row first, base64
-  const w = gl.drawingBufferWidth, h = gl.drawingBufferHeight;
-  const rgba = new Uint8Array(w * h * 4);
-  gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, rgba);
-  const rgb = new Uint8Array(w * h * 3);
-  for (let y = 0; y < h; y++) {
-    for (let x = 0; x < w; x++) {
-      const s = ((h - 1 - y) * w + x) * 4, d = (y * w + x) * 3;
-      rgb[d] = rgba[s]; rgb[d + 1] = rgba[s + 1]; rgb[d + 2] = rgba[s + 2];
-    }
-  }
-  let text = '';
-  for (let i = 0; i < rgb.length; i += 0x8000) text += String.fromCharCode(...rgb.subarray(i, i + 0x8000));
-  return { width: w, height: h, rgb: btoa(text) };
-}
+const pixels = () => readPixels(gl);  // the canvas, for scripts
 
 function benchmark(frames = 60, width = cams.width, height = cams.height) {
   // a synchronous orbit of `frames` frames at the view-0 distance and elevation; ms per frame
