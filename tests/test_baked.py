@@ -190,7 +190,8 @@ def test_bad_input_is_one_line_and_writes_nothing(baked_run, tmp_path, capsys):
             (render_main, [str(no_stage2), "--mode", "baked"], "shells-bake"),
             (view_main, [str(no_stage2), "--baked", "--port", "0"], "shells-bake"),
             (bake_main, [str(baked_run), "--levels", "-1", "1"], "levels"),
-            (bake_main, [str(baked_run), "--size-mb", "0"], "--size-mb")):
+            (bake_main, [str(baked_run), "--size-mb", "0"], "--size-mb"),
+            (bake_main, [str(baked_run), "--texel", "0"], "--texel")):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (argv, err)
