@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 import torch
 
-from shells.bake.format import (Atlas, BakedAsset, Layer, Textures, closed, quantise, read_asset,
+from shells.bake.format import (BakedAsset, Layer, Textures, quantise, read_asset,
                                 up_matrix, write_asset)
+from shells.levelset.cage import is_watertight as closed
 from shells.bake.render import LayerScene, render_baked, sample
 
 ROOT = Path(__file__).resolve().parents[1]

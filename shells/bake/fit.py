@@ -22,11 +22,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from shells.bake.format import BakedAsset, Layer, Textures, closed, quantise
+from shells.bake.format import BakedAsset, Layer, Textures, quantise
 from shells.bake.layers import (Grid, TexelMap, dilate, level_sets, sample_field, simplify,
                                 subset, texel_map, unwrap)
 from shells.bake.render import LayerHits, LayerScene, shade
 from shells.errors import InputError
+from shells.levelset.cage import is_watertight
 from shells.progress import tqdm
 
 CHANNELS = 13  # RGBA, SH 3 x 3
@@ -258,7 +259,7 @@ def bake(field: Any, aabb: np.ndarray, outer: tuple[np.ndarray, np.ndarray],
     kept = [subset(V, F[m], uv) + (F0[m],) for (V, F, uv), (_, F0), m in
             zip(meshes, simplified, keep)]
     asset = BakedAsset(
-        layers=[Layer(c, V, F.astype(np.uint32), uv, closed(F0))
+        layers=[Layer(c, V, F.astype(np.uint32), uv, is_watertight(F0))
                 for (V, F, uv, F0), c in zip(kept, levels)],
         atlas=quantise(tex), background=tuple(float(x) for x in background),
         up=tuple(float(x) for x in up))

@@ -43,7 +43,7 @@ class Layer:
     V: np.ndarray  # [n, 3] float32 vertex positions, world
     F: np.ndarray  # [m, 3] uint32 triangles
     uv: np.ndarray  # [n, 2] float32 atlas coordinates, (0, 0) the images' top-left corner
-    closed: bool = False  # every edge shared by two triangles (a viewer may cull back faces)
+    closed: bool = False  # a closed, consistently wound surface (a viewer may cull back faces)
 
 
 @dataclass
@@ -95,15 +95,6 @@ def quantise(tex: Textures) -> Atlas:
     q = np.clip(np.round(sh / scale * 127.0) + 128.0, 1, 255).astype(np.uint8)
     return Atlas(base=np.round(rgba * 255.0).astype(np.uint8),
                  sh=np.ascontiguousarray(q.transpose(3, 0, 1, 2)), sh_scale=scale)
-
-
-def closed(F: np.ndarray) -> bool:
-    """Whether every edge of the triangles F [m, 3] is shared by exactly two of them."""
-    if len(F) == 0:
-        return False
-    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64), 1)
-    _, counts = np.unique(e[:, 0] * (int(e.max()) + 1) + e[:, 1], return_counts=True)
-    return bool((counts == 2).all())
 
 
 def png(image: np.ndarray) -> bytes:
