@@ -18,6 +18,7 @@ import argparse
 import contextlib
 import copy
 import dataclasses
+import json
 import sys
 import time
 from types import SimpleNamespace
@@ -106,7 +107,7 @@ def stage1(a: argparse.Namespace) -> int:
 
 def grid_sizes(trained, cfg, data, pixels, bg, grid, profile: bool) -> int:
     """``stage1 --sizes``: forward + backward and Adam ms of fresh fields of SIZES."""
-    from shells.train.loop import make_optimizer
+    from shells.train.optim import make_optimizer
     from shells.train.stage1 import build_field, stage1_step
 
     print("| field | parameters | forward + backward ms | Adam ms |\n|---|---|---|---|")
@@ -143,6 +144,219 @@ def grid_sizes(trained, cfg, data, pixels, bg, grid, profile: bool) -> int:
                                       torch.Generator().manual_seed(k), grid)
                 loss.backward()
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+    return 0
+
+
+PHASES = ("stage 1: draw pixels", "volume: coarse samples", "volume: fine placement",
+          "volume: fine samples", "volume: weights, colours of light samples",
+          "volume: samples with gradient", "stage 1: regularisers", "stage 1: backward",
+          "stage 1: Adam")
+
+
+def paths(a: argparse.Namespace) -> int:
+    """Stage-1 steps on the compiled hash-grid path with its gradient sink against the torch
+    path, interleaved: four copies of RUN's stage-1 field, optimiser state and occupancy grid
+    continue its training ("torch": the torch lookup with gradient and its ``index_add_`` into
+    a zeroed table that autograd hands to the fused Adam, as main trained before the compiled
+    path; "compiled": `shells.fields.hashgrid_cpu` and `shells.train.optim.GridAdam`; each with
+    the run's step generators and those of the next seed, whose difference is the run-to-run
+    spread of the losses; Dr.Jit's lookups without gradient on the calling thread in all, as
+    `shells-train` runs them). Each takes ``--warmup`` untimed steps, then ``--steps`` steps
+    in pieces of ``--chunk``, the order of the copies reversed each piece. The learning rate
+    follows a schedule of ``--schedule`` steps (default: the run's). Then ``--profile`` steps
+    of each under torch.profiler give the split of a step into phases (the stage's
+    ``record_function`` ranges; "other" is the rest). Prints ms/step, samples/s, rays/s, the
+    mean losses (all timed steps, the last 100) and the mean |loss difference| per step
+    against "torch", as JSON."""
+    import statistics
+
+    from torch.profiler import ProfilerActivity, profile, record_function
+
+    from shells.data.datasets import has_transparency
+    from shells.fields.hashgrid import HashGrid, drjit_on_calling_thread
+    from shells.train.loop import lr_factor, step_generator
+    from shells.train.optim import make_optimizer
+    from shells.train.stage1 import before_step, stage1_grid, stage1_step
+
+    r = open_run(a.run)
+    cfg, tc = r.cfg, r.cfg.train
+    base = int(r.ckpt["step"])
+    schedule = a.schedule or tc.iters
+    alpha = (r.data.alpha.reshape(-1) if tc.random_background
+             and has_transparency(r.data.alpha) and r.field.similarity is None else None)
+    variants = [("torch", 0), ("torch, seed + 1", 1), ("compiled", 0), ("compiled, seed + 1", 1)]
+    state = {}
+    for name, dseed in variants:
+        field = copy.deepcopy(r.field)
+        compiled = name.startswith("compiled")
+        for m in field.modules():
+            if isinstance(m, HashGrid):
+                m.training_path = "auto" if compiled else "torch"
+        opt = make_optimizer(field, tc.lr, tc.lr_mlp, sink=compiled)
+        kernels = [{"fused": g["fused"], "foreach": g["foreach"]} for g in opt.param_groups]
+        opt.load_state_dict(r.ckpt["optimizer"])
+        for g, k in zip(opt.param_groups, kernels):
+            g.update(k)
+        state[name] = SimpleNamespace(field=field, opt=opt, grid=stage1_grid(r.ckpt, field, cfg),
+                                      seed=tc.seed + dseed, done=0, losses=[], seconds=0.0,
+                                      samples=0.0, rays=0.0)
+
+    def step(v: SimpleNamespace) -> None:
+        k = base + v.done
+        before_step(v.field, v.grid, tc, k)
+        for g in v.opt.param_groups:
+            g["lr"] = g["base_lr"] * lr_factor(k, schedule, tc.warmup_iters, tc.lr_final_factor)
+        v.opt.zero_grad(set_to_none=True)
+        loss, logs = stage1_step(v.field, r.data, r.pixels, tc, r.bg,
+                                 step_generator(v.seed, k, torch.device("cpu")), v.grid, k,
+                                 alpha)
+        with record_function("stage 1: backward"):
+            loss.backward()
+        with record_function("stage 1: Adam"):
+            v.opt.step()
+        v.done += 1
+        v.losses.append(logs["loss"])
+        v.samples += logs["samples"]
+        v.rays += logs["rays"]
+
+    order = [n for n, _ in variants]
+    with drjit_on_calling_thread():
+        for name in order:  # compiles the kernels, fills the caches: not timed
+            for _ in range(a.warmup):
+                step(state[name])
+            state[name].samples = state[name].rays = 0.0
+        for piece in range(-(-a.steps // a.chunk)):
+            for name in (order if piece % 2 == 0 else order[::-1]):
+                v = state[name]
+                n = min(a.chunk, a.warmup + a.steps - v.done)
+                t = time.perf_counter()
+                for _ in range(n):
+                    step(v)
+                v.seconds += time.perf_counter() - t
+            print(f"piece {piece + 1}: " + ", ".join(
+                f"{n} {state[n].seconds / max(state[n].done - a.warmup, 1) * 1000:.0f} ms/step"
+                for n in order), file=sys.stderr, flush=True)
+        split = {}
+        for name in order:
+            v = state[name]
+            with profile(activities=[ProfilerActivity.CPU]) as prof:
+                t = time.perf_counter()
+                for _ in range(a.profile):
+                    step(v)
+                total = (time.perf_counter() - t) / a.profile * 1000
+            ev = {e.key: e.cpu_time_total / 1000 / a.profile for e in prof.key_averages()
+                  if e.key in PHASES}
+            ph = {p: round(ev.get(p, 0.0), 1) for p in PHASES}
+            ph["other"] = round(total - sum(ph.values()), 1)
+            ph["step (profiled)"] = round(total, 1)
+            split[name] = ph
+    ref = state["torch"]
+    last = min(100, a.steps)
+    out = {}
+    for name in order:
+        v = state[name]
+        timed = slice(a.warmup, a.warmup + a.steps)
+        out[name] = {"ms_per_step": 1000 * v.seconds / a.steps,
+                     "samples_per_s": v.samples / v.seconds, "rays_per_s": v.rays / v.seconds,
+                     "loss_mean": statistics.fmean(v.losses[timed]),
+                     "loss_mean_last": statistics.fmean(v.losses[timed][-last:]),
+                     "mean_abs_loss_diff_vs_torch": statistics.fmean(
+                         abs(x - y) for x, y in zip(v.losses[timed], ref.losses[timed])),
+                     "phases_ms": split[name]}
+    both = [(out[f"compiled{s}"]["samples_per_s"], out[f"torch{s}"]["samples_per_s"])
+            for s in ("", ", seed + 1")]
+    out["ratio samples/s compiled / torch"] = sum(c for c, _ in both) / sum(t for _, t in both)
+    emit_json({"run": a.run, "from_step": base, "steps": a.steps, "schedule": schedule,
+               "threads": torch.get_num_threads(), "variants": out,
+               "losses": {n: state[n].losses for n in order}})
+    return 0
+
+
+def grid(a: argparse.Namespace) -> int:
+    """The hash grid's own kernels: RUN's stage-1 grid (its trained table), ``--points`` points
+    on a thin spherical shell around the box centre (radius 0.3 +- 0.02 of the unit cube, the
+    kind of set a step's samples near a surface make): the lookup with gradient and its
+    backward (torch `_Lookup` with ``index_add_`` and the compiled path, each into a zeroed
+    table-sized gradient through autograd; the compiled path into the grid's gradient sink,
+    cleared after), the lookup without gradient (torch, Dr.Jit on the calling thread, Dr.Jit
+    on its pool, the compiled kernel), and torch's fused Adam on the table. Medians of ``--repeat`` calls, ms, as JSON; the variants of a row alternate."""
+    import statistics
+
+    import drjit as dr
+
+    from shells.fields import hashgrid_cpu
+    from shells.fields.hashgrid import drjit_on_calling_thread
+
+    gen = torch.Generator().manual_seed(0)
+    d = torch.randn(a.points, 3, generator=gen)
+    r = 0.3 + 0.02 * torch.randn(a.points, 1, generator=gen)
+    x = (0.5 + r * d / d.norm(dim=1, keepdim=True)).clamp(0, 1).float()
+    rows = []
+    field, _ = field_from_checkpoint(read_checkpoint(RunDir(a.run), "stage1"), a.run)
+    for name, grid in [(f"{a.run}: {field.grid.extra_repr()}", field.grid)]:
+        gout = torch.randn(a.points, grid.out_dim, generator=gen)
+
+        def fwd_bwd(path: str) -> None:
+            grid.training_path = path
+            grid.params.grad = None
+            (grid(x) * gout).sum().backward()
+
+        def nograd(path: str) -> None:
+            grid.inference = path  # "auto": Dr.Jit
+            with torch.no_grad():
+                grid(x)
+
+        def drjit_calling() -> None:
+            with drjit_on_calling_thread():
+                nograd("auto")
+
+        opt = torch.optim.Adam([grid.params], lr=1e-2, betas=(0.9, 0.99), eps=1e-15,
+                               fused=True)
+
+        grid.use_gradient_sink(True)  # allocated once, as an optimiser does
+        sink = {"grad_sink": grid.__dict__.pop("grad_sink")}
+
+        def sink_fwd_bwd() -> None:
+            grid.__dict__.update(sink)
+            grid.params.grad = None
+            (grid(x) * gout).sum().backward()
+            grid.grad_sink.zero_()
+            grid.__dict__.pop("grad_sink")
+
+        def adam() -> None:
+            grid.params.grad = torch.zeros_like(grid.params)
+            opt.step()
+            grid.params.grad = None
+
+        def compiled_nograd() -> None:
+            hashgrid_cpu.lookup(grid._table(), x.numpy(), grid._layout())
+
+        cases = {"fwd+bwd torch (autograd, zeroed table)": lambda: fwd_bwd("torch"),
+                 "fwd+bwd compiled (autograd, zeroed table)": lambda: fwd_bwd("auto"),
+                 "fwd+bwd compiled into the sink, cleared": sink_fwd_bwd,
+                 "no-grad torch": lambda: nograd("torch"),
+                 "no-grad Dr.Jit, calling thread": drjit_calling,
+                 "no-grad Dr.Jit, pool": lambda: nograd("auto"),
+                 "no-grad compiled (its forward)": compiled_nograd,
+                 "Adam fused, the table": adam}
+        times: dict[str, list[float]] = {k: [] for k in cases}
+        for k in range(a.repeat + 1):
+            for case, fn in cases.items():
+                t = time.perf_counter()
+                fn()
+                if k:
+                    times[case].append(time.perf_counter() - t)
+        grid.__dict__.update(sink)
+        (grid(x) * gout).sum().backward()
+        row = {"grid": name, "params_M": grid.params.numel() / 1e6,
+               "touched_rows": int(grid.grad_sink.ne(0).any(1).sum()),
+               "rows": len(grid.grad_sink),
+               **{c: 1000 * statistics.median(t) for c, t in times.items()}}
+        grid.use_gradient_sink(False)
+        print(json.dumps(row), file=sys.stderr, flush=True)
+        rows.append(row)
+    emit_json({"points": a.points, "threads": torch.get_num_threads(),
+               "drjit_threads": dr.thread_count(), "rows": rows})
     return 0
 
 
@@ -265,12 +479,22 @@ def allocator(a: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     p, sub = subcommands("python -m bench.step_speed", __doc__.split("\n\n")[0],
-                         [stage1, stage2, allocator])
+                         [stage1, paths, grid, stage2, allocator])
     sp = sub["stage1"]
     sp.add_argument("--data", default=None, help="default: RUN's data set (run.json)")
     sp.add_argument("--downscale", type=int, default=None, help="default: RUN's")
     sp.add_argument("--sizes", action="store_true", help="fresh fields of other grid sizes")
     sp.add_argument("--profile", action="store_true", help="with --sizes: a profiler table")
+    sp = sub["paths"]
+    sp.add_argument("--steps", type=int, default=300, help="steps of each variant")
+    sp.add_argument("--chunk", type=int, default=25, help="steps per piece")
+    sp.add_argument("--warmup", type=int, default=3, help="untimed steps of each first")
+    sp.add_argument("--schedule", type=int, default=None,
+                    help="length of the learning-rate schedule (default: the run's iters)")
+    sp.add_argument("--profile", type=int, default=3, help="profiled steps of each")
+    sp = sub["grid"]
+    sp.add_argument("--points", type=int, default=30000, help="lookup points")
+    sp.add_argument("--repeat", type=int, default=10, help="timed calls per variant")
     sp = sub["stage2"]
     sp.add_argument("--shards", default="1,4,1,8", help="comma-separated shard counts")
     sp.add_argument("--steps", type=int, default=4, help="timed steps per shard count")

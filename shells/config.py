@@ -79,6 +79,11 @@ class TrainConfig:
     shards: int = 1  # a step's rays are drawn in this many shards, each from its own random
     # stream; N data-parallel processes take shards r, r + N, ... (N must divide it); the
     # default becomes the number of processes when a run starts under torchrun
+    hashgrid: str = "compiled"  # the hash grid's lookups with gradient: "compiled" = the
+    # compiled CPU kernels, the table's gradient in a persistent buffer (one process; under
+    # torchrun the kernels with autograd's gradient; `shells.fields.hashgrid_cpu`,
+    # `shells.train.optim`), "torch" = the torch lookup and autograd (the reference; CUDA
+    # always); the same arithmetic up to the order of float sums
     sampler: str = "box"  # where a ray's samples go: "box" = its whole chord through the scene
     # box; "occupancy" = the span between the first and last occupied cell of an occupancy grid
     # rebuilt from the field (empty-space skipping; rays crossing no occupied cell are not
@@ -248,6 +253,7 @@ class FinetuneConfig:
     batch_rays: int = 4096  # rays per step
     pixel_samples: int = 1  # rays per training pixel (k x k jittered, averaged), as in stage 1
     shards: int = 1  # ray shards per step, as in stage 1
+    hashgrid: str = "compiled"  # as train.hashgrid
     color_loss: str = "l1"  # the colour loss, as train.color_loss
     lr: float = 1e-3  # Adam learning rate for hash tables
     lr_mlp: float = 1e-4  # Adam learning rate for MLP weights
@@ -427,6 +433,8 @@ _RULES = [_rule(k, *r) for k, r in [
     *[(f"train.{k}", _at_least(1)) for k in ("curve_views", "curve_pixels", "eval_density")],
     ("train.free_transmittance", ((lambda v: 0 < v < 1), "must be in (0, 1)")),
     *[(f"{s}.color_loss", ((lambda v: v in COLOR_LOSSES), f"must be one of {COLOR_LOSSES}"))
+      for s in ("train", "finetune")],
+    *[(f"{s}.hashgrid", ((lambda v: v in ("compiled", "torch")), "must be 'compiled' or 'torch'"))
       for s in ("train", "finetune")],
     ("train.slope", ((lambda v: v in ("normal", "ray")), "must be 'normal' or 'ray'")),
     ("train.reg_rays", ((lambda v: v in ("uniform", "level_set")),

@@ -69,9 +69,13 @@ def max_relative_difference(a: dict[str, torch.Tensor], b: dict[str, torch.Tenso
 def _config_file(path: Path, iters: int, shards: int, ft_shards: int | None = None,
                  **train) -> Path:
     cfg = tiny_config(train_iters=iters, train_batch=64).to_dict()
-    cfg["train"].update(shards=shards, log_every=1, **train)
+    # the torch lookups: a torchrun rank and one process then sum the same gradients in the
+    # same order (one process would add into the compiled path's persistent gradient, in
+    # another order, and Adam's eps of 1e-15 turns rounding in near-zero gradients into
+    # whole steps)
+    cfg["train"].update(shards=shards, log_every=1, hashgrid="torch", **train)
     cfg["finetune"].update(shards=shards if ft_shards is None else ft_shards, iters=4,
-                           batch_rays=128, log_every=1)
+                           batch_rays=128, log_every=1, hashgrid="torch")
     path.write_text(json.dumps({k: cfg[k] for k in ("field", "train", "shell", "finetune")}))
     return path
 

@@ -212,7 +212,7 @@ def test_render_speed_bench_end_to_end(tmp_path, tiny_blender, capsys):
     sphere r = 0.5, shells at 0.6 / 0.4), with small settings."""
     from shells.presets import toy_config
     from shells.files import write_json
-    from shells.train.loop import make_optimizer
+    from shells.train.optim import make_optimizer
     from shells.run import save_checkpoint
     from shells.train.stage1 import build_field
 

@@ -379,7 +379,7 @@ def test_render_run_end_to_end(tmp_path, tiny_blender):
     from shells.presets import toy_config
     from shells.files import write_json
     from shells.fields.network import ShellField
-    from shells.train.loop import make_optimizer
+    from shells.train.optim import make_optimizer
     from shells.pipeline import render_run
     from shells.run import save_checkpoint
     from shells.train.stage1 import build_field

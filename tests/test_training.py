@@ -20,16 +20,16 @@ def test_fused_adam_matches_the_reference_adam():
     """make_optimizer's fused Adam makes the updates of torch's per-tensor Adam (float32
     rounding apart), hash-table rows without gradient (zeros) included."""
     from tests.conftest import tiny_config
-    from shells.train.loop import make_optimizer
+    from shells.train.optim import make_optimizer
     from shells.train.stage1 import build_field
 
     cfg = tiny_config()
     aabb = torch.tensor([[-1.0] * 3, [1.0] * 3])
     fast, ref = build_field(cfg, aabb, torch.device("cpu")), build_field(cfg, aabb,
                                                                           torch.device("cpu"))
-    opt = make_optimizer(fast, 1e-2, 1e-3)
+    opt = make_optimizer(fast, 1e-2, 1e-3, sink=False)
     assert all(g["fused"] for g in opt.param_groups)
-    reference = make_optimizer(ref, 1e-2, 1e-3)  # the same groups, on torch's per-tensor loop
+    reference = make_optimizer(ref, 1e-2, 1e-3, sink=False)  # the same groups, on torch's per-tensor loop
     for g in reference.param_groups:
         g.update(fused=False, foreach=False)
     init = build_field(cfg, aabb, torch.device("cpu")).state_dict()

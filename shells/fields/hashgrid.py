@@ -31,11 +31,13 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import drjit as dr
+import numpy as np
 import torch
 from torch import nn
 
 from shells.device import drjit_llvm
 from shells.errors import InputError
+from shells.fields import hashgrid_cpu
 
 PRIMES = (1, 2654435761, 805459861)  # tiny-cuda-nn / Dr.Jit spatial-hash primes (x, y, z)
 _MAX_PARAMS = 0xFFFFFFFF // 2  # Dr.Jit caps a dense level at 2^31 - 1 rows
@@ -105,10 +107,19 @@ class HashGrid(nn.Module):
     ``dr.nn.HashGridEncoding`` on Dr.Jit's LLVM backend (`_drjit_lookup`), which reads `params`
     in place and gives the same floats; "torch": always the torch lookup. Dr.Jit's fused
     kernel does not pay off for the backward on the CPU (its atomic scatter took longer than
-    the torch `index_add_`; BENCHMARKS.md), so gradients always take the torch path.
+    the torch `index_add_`; BENCHMARKS.md).
+
+    ``training_path`` "auto" (default): a lookup with a gradient of the table (and none of the
+    points) of CPU float32 tensors runs compiled (`_CompiledLookup`,
+    `shells.fields.hashgrid_cpu`: the reference's floats; its backward recomputes the corners
+    and scatters on every core, into the grid's gradient sink when `use_gradient_sink` is on);
+    "torch": the torch `_Lookup`, the reference of that path. Gradients of the points always
+    take the torch path.
     """
 
     inference: str = "auto"
+    training_path: str = "auto"
+    sink_dirty: bool = False  # the gradient sink holds a gradient (`use_gradient_sink`)
 
     def __init__(self, n_levels: int, n_features: int, hashmap_size: int, base_resolution: int,
                  per_level_scale: float, init_scale: float = 1e-4) -> None:
@@ -136,6 +147,40 @@ class HashGrid(nn.Module):
                              persistent=False)  # [L]
         self._pow2 = all((lv.size & (lv.size - 1)) == 0 for lv in self.levels[self.n_dense:])
         self.out_dim = L * n_features
+
+    # -- the compiled CPU path (shells.fields.hashgrid_cpu) ------------------------------------
+    def _compiled_ok(self, x01: torch.Tensor) -> bool:
+        return (x01.device.type == "cpu" and self.params.device.type == "cpu"
+                and self.params.dtype == torch.float32)
+
+    def _layout(self) -> "hashgrid_cpu.Layout":
+        lay = self.__dict__.get("_cpu_layout")
+        if lay is None:
+            lay = self.__dict__["_cpu_layout"] = hashgrid_cpu.Layout(self.levels, self.n_features)
+        return lay
+
+    def _table(self) -> "np.ndarray":  # [R, F] float32, the parameter memory itself
+        return self.params.detach().view(-1, self.n_features).numpy()
+
+    @staticmethod
+    def _points(x01: torch.Tensor) -> "np.ndarray":
+        return x01.detach().float().contiguous().numpy()
+
+    def use_gradient_sink(self, on: bool = True) -> None:
+        """On: the compiled backward adds the table's gradient into a persistent buffer
+        (`grad_sink`, [rows, F]; `sink_dirty` set) instead of giving autograd a table-sized
+        gradient (``params.grad`` stays None); `shells.train.optim.GridAdam` steps with it and
+        zeroes it. Off: gradients as usual."""
+        if on and "grad_sink" not in self.__dict__:
+            self.__dict__["grad_sink"] = torch.zeros(self.params.numel() // self.n_features,
+                                                     self.n_features)
+            self.sink_dirty = False
+        elif not on:
+            self.__dict__.pop("grad_sink", None)
+
+    @property
+    def sink_on(self) -> bool:
+        return "grad_sink" in self.__dict__
 
     def extra_repr(self) -> str:
         return (f"levels={self.n_levels}, features={self.n_features}, "
@@ -188,9 +233,12 @@ class HashGrid(nn.Module):
         if x01.ndim != 2 or x01.shape[1] != 3:
             raise InputError(f"HashGrid: points must be [N, 3], got {tuple(x01.shape)}")
         N = x01.shape[0]
+        grad = torch.is_grad_enabled() and (self.params.requires_grad or x01.requires_grad)
+        if (grad and not x01.requires_grad and self.training_path == "auto"
+                and self._compiled_ok(x01)):
+            return _CompiledLookup.apply(self.params, x01, self)
         if (self.inference == "auto" and x01.device.type == "cpu" and drjit_llvm()
-                and not (torch.is_grad_enabled()
-                         and (self.params.requires_grad or x01.requires_grad))):
+                and not grad):
             return _drjit_lookup(self, x01)
         rows, wts = self.corner_rows_weights(x01)
         out = _Lookup.apply(self.params, rows.view(8, -1), wts.view(8, -1), self.n_features)
@@ -251,6 +299,35 @@ def _drjit_lookup(grid: HashGrid, x01: torch.Tensor) -> torch.Tensor:  # [N, 3] 
         finally:
             enc.data = Float()  # do not hold on to the torch parameter memory
     return res
+
+
+class _CompiledLookup(torch.autograd.Function):
+    """The lookup with gradient on the compiled CPU path: the forward is
+    `hashgrid_cpu.lookup` (the same floats as `hashgrid_reference`), the backward recomputes
+    the corners and scatters (`hashgrid_cpu.scatter`) into a zeroed table, or, when the grid
+    uses its gradient sink, into the sink (no gradient reaches ``params.grad``). Points take
+    no gradient here (`HashGrid.forward` sends those to the torch path)."""
+
+    @staticmethod
+    def forward(ctx, params, x01, grid):  # [P], [N, 3], HashGrid -> [N, L F]
+        x = grid._points(x01)
+        ctx.grid, ctx.x = grid, x
+        return torch.from_numpy(hashgrid_cpu.lookup(grid._table(), x, grid._layout()))
+
+    @staticmethod
+    def backward(ctx, grad):  # [N, L F]
+        grid = ctx.grid
+        if not ctx.needs_input_grad[0]:
+            return None, None, None
+        g = grad.float().contiguous().numpy()
+        lay = grid._layout()
+        if grid.sink_on:
+            hashgrid_cpu.scatter(g, ctx.x, lay, grid.grad_sink.numpy())
+            grid.sink_dirty = True
+            return None, None, None
+        table = torch.zeros(lay.rows, grid.n_features)
+        hashgrid_cpu.scatter(g, ctx.x, lay, table.numpy())
+        return table.view(-1), None, None
 
 
 class _Lookup(torch.autograd.Function):

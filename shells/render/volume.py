@@ -29,6 +29,7 @@ import contextlib
 import math
 
 import torch
+from torch.profiler import record_function
 
 from shells.fields.neus import composite, half_cell_diagonal, may_have_density, neus_alpha
 from shells.render.warp import ray_span, s_of_t, t_of_s
@@ -244,28 +245,30 @@ def render_volume_rays(field: torch.nn.Module,
     culled = cull > 0 and torch.is_grad_enabled()
     colour = not culled  # culled: the colours once the weights are known
     with torch.no_grad() if culled else contextlib.nullcontext():
-        out = _field_at(field, origins, dirs, to_t(u), colour)
+        with record_function("volume: coarse samples"):
+            out = _field_at(field, origins, dirs, to_t(u), colour)
         if n_importance > 0:
             # the coarse samples are evaluated once (with gradient unless culled); their
             # weights (detached) place the fine samples, which are evaluated and merged in
             # distance order
-            with torch.no_grad():
+            with torch.no_grad(), record_function("volume: fine placement"):
                 delta = torch.diff(to_t(section_edges(u, near, far)), dim=-1)
                 cos = cos_of(out, dirs[:, None], to_t(u))
                 alpha = neus_alpha(out["sdf"], out["s"], cos, delta)
                 _, w, _ = composite(alpha, torch.zeros(*u.shape, 3, device=u.device),
                                     background)
                 u_fine = sample_pdf(u, w, near, far, n_importance, generator)
-            fine = _field_at(field, origins, dirs, to_t(u_fine), colour)
-            u, order = torch.sort(torch.cat([u, u_fine], dim=-1), dim=-1)
-            out = {k: _merge(out[k], fine[k], order) for k in out}
+            with record_function("volume: fine samples"):
+                fine = _field_at(field, origins, dirs, to_t(u_fine), colour)
+                u, order = torch.sort(torch.cat([u, u_fine], dim=-1), dim=-1)
+                out = {k: _merge(out[k], fine[k], order) for k in out}
     t = to_t(u)
     delta = torch.diff(to_t(section_edges(u, near, far)), dim=-1)  # [R, S]
     S = t.shape[1]
     d = dirs[:, None].expand(R, S, 3)
     pts = origins[:, None] + t[..., None] * dirs[:, None]  # [R, S, 3]
     if culled:  # the gradient pass on the samples that carry weight
-        with torch.no_grad():
+        with torch.no_grad(), record_function("volume: weights, colours of light samples"):
             cos = cos_of(out, d, t)
             alpha = neus_alpha(out["sdf"], out["s"], cos, delta) * hit[:, None]
             w = composite(alpha, torch.zeros_like(pts), background)[1]  # [R, S]
@@ -275,8 +278,9 @@ def render_volume_rays(field: torch.nn.Module,
             if bool(lit.any()):
                 rgb[lit] = field(pts[lit], d[lit])["rgb"]
             out["rgb"] = rgb
-        live = field(pts[keep], d[keep])
-        out = {k: v.index_put((keep,), live[k]) for k, v in out.items()}
+        with record_function("volume: samples with gradient"):
+            live = field(pts[keep], d[keep])
+            out = {k: v.index_put((keep,), live[k]) for k, v in out.items()}
     else:
         keep = torch.ones_like(u, dtype=torch.bool)
     sdf, s, rgb = out["sdf"], out["s"], out["rgb"]

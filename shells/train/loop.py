@@ -1,6 +1,6 @@
 """The optimisation loop every training stage runs (stage 1, stage 2, and any later stage).
 
-A stage supplies its field, an Adam optimiser (`make_optimizer`), its schedule and a shard loss
+A stage supplies its field, an Adam optimiser (`shells.train.optim.make_optimizer`), its schedule and a shard loss
 ``shard_loss(gen) -> (loss, logs)`` that draws ``batch_rays / shards`` rays with the generator
 it is given and returns their loss tensor and scalar logs (``loss`` and ``psnr`` at least). The
 loop owns the rest, the same way for every stage:
@@ -41,7 +41,6 @@ import torch
 from shells import distributed
 from shells.config import COLOR_LOSSES, Config
 from shells.errors import InputError, Interrupted
-from shells.fields.hashgrid import HashGrid
 from shells.fields.network import ShellField
 from shells.progress import tqdm
 from shells.run import append_log, load_field_state, save_checkpoint, truncate_log
@@ -69,21 +68,6 @@ class Schedule:
                    final=section.lr_final_factor, seed=section.seed,
                    rays_per_step=section.batch_rays, checkpoint_every=section.checkpoint_every,
                    log_every=section.log_every, shards=section.shards)
-
-
-def make_optimizer(field: ShellField, lr_grid: float, lr_mlp: float) -> torch.optim.Adam:
-    """Adam with two groups: hash tables (high lr, as Instant-NGP) and MLP weights.
-
-    torch's fused kernel (one pass over each tensor): on the CPU it takes a small fraction of
-    the default per-tensor Adam's time a step, which shows in stage 1's rays/s
-    (BENCHMARKS.md, method notes); the same update to float32 rounding
-    (`tests/test_training.py`)."""
-    grid_ids = {id(p) for m in field.modules() if isinstance(m, HashGrid) for p in m.parameters()}
-    grid = [p for p in field.parameters() if id(p) in grid_ids]
-    mlp = [p for p in field.parameters() if id(p) not in grid_ids]
-    return torch.optim.Adam([{"params": grid, "lr": lr_grid, "base_lr": lr_grid},
-                             {"params": mlp, "lr": lr_mlp, "base_lr": lr_mlp}],
-                            betas=(0.9, 0.99), eps=1e-15, fused=True)
 
 
 def lr_factor(step: int, iters: int, warmup: int, final: float) -> float:

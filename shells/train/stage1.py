@@ -32,6 +32,7 @@ from typing import Any, Callable
 
 import numpy as np
 import torch
+from torch.profiler import record_function
 
 from shells import distributed
 from shells.config import Config, TrainConfig
@@ -47,7 +48,8 @@ from shells.render.volume import SpanGrid, ray_aabb, render_volume_image, render
 from shells.run import (RunDir, append_log, field_from_checkpoint, read_checkpoint, read_run,
                         truncate_log, write_run)
 from shells.train.health import Stage1Health, probe_points, psnr_floor, solid_share
-from shells.train.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
+from shells.train.loop import Schedule, color_loss, join, optimise, psnr_of
+from shells.train.optim import make_optimizer, use_hashgrid
 
 MAX_DRAWS = 8  # "occupancy" sampler: at most this many rounds of pixels drawn per shard
 
@@ -211,10 +213,11 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
     pixel on a random background (`random_backgrounds`); None: all on ``background``."""
     spp = tc.pixel_samples
     n_rays = tc.batch_rays // tc.shards
-    if grid is None:
-        idx, o, d = data.sample_pixel_rays(n_rays, spp, gen)
-    else:
-        idx, o, d, near, far, hit, crosses = draw_pixels(data, grid, n_rays, spp, gen)
+    with record_function("stage 1: draw pixels"):
+        if grid is None:
+            idx, o, d = data.sample_pixel_rays(n_rays, spp, gen)
+        else:
+            idx, o, d, near, far, hit, crosses = draw_pixels(data, grid, n_rays, spp, gen)
     if alpha is None:
         target, pixel_bg = pixels[idx], background.expand(len(idx), 3)
     else:
@@ -258,10 +261,11 @@ def stage1_step(field: ShellField, data: Dataset, pixels: torch.Tensor, tc: Trai
         off, share, near_ls = off_band(field, out, tc)
         free, free_share = free_space(out, tc)
     level_set = tc.reg_rays == "level_set" and out is not None
-    pts = reg_points(field, points, tc.reg_points // tc.shards, gen,
-                     weights=out["weights"] if level_set else None,
-                     near=near_ls if level_set else None)
-    reg = regularisers(field, pts, tc.fd_eps, tc.smooth_eps, gen)
+    with record_function("stage 1: regularisers"):
+        pts = reg_points(field, points, tc.reg_points // tc.shards, gen,
+                         weights=out["weights"] if level_set else None,
+                         near=near_ls if level_set else None)
+        reg = regularisers(field, pts, tc.fd_eps, tc.smooth_eps, gen)
     w_normal = tc.normal_weight * normal_factor(step, tc)
     loss = (color + tc.eikonal_weight * reg["eikonal"] + tc.kernel_smooth_weight * reg["smooth"]
             + w_normal * reg["normal"])
@@ -421,6 +425,7 @@ def train(data_dir: str | Path | None, run_dir: str | Path, cfg: Config, device:
     tc = cfg.train
     data = load_dataset(data_dir, "train", downscale=downscale, background=cfg.data.background)
     field = build_field(cfg, data.aabb, device)
+    use_hashgrid(field, tc.hashgrid)
     opt = make_optimizer(field, tc.lr, tc.lr_mlp)
     if ckpt is None and w.main:
         write_run(run, data_dir, downscale, str(device), cfg)

@@ -30,7 +30,8 @@ from shells.files import write_json
 from shells.fields.contraction import uncontract
 from shells.fields.hashgrid import HashGrid
 from shells.fields.network import ShellField
-from shells.train.loop import Schedule, color_loss, join, make_optimizer, optimise, psnr_of
+from shells.train.loop import Schedule, color_loss, join, optimise, psnr_of
+from shells.train.optim import make_optimizer, use_hashgrid
 from shells.render.band import render_band_rays
 from shells.render.raycast import ShellScene
 from shells.run import RunDir, field_from_checkpoint, load_shells, read_checkpoint, read_run
@@ -175,6 +176,7 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
     scene = load_shells(run, mitsuba_variant(rc.variant, dev), shells)
     data = load_dataset(meta["data"], "train", downscale=int(meta["downscale"]),
                         background=cfg.data.background)
+    use_hashgrid(field, fc.hashgrid)
     opt = make_optimizer(field, fc.lr, fc.lr_mlp)
     pixels = data.images.reshape(-1, 3).to(dev)
     background = torch.tensor(cfg.data.background, dtype=torch.float32, device=dev)
