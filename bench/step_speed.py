@@ -279,12 +279,11 @@ def grid(a: argparse.Namespace) -> int:
     backward (torch `_Lookup` with ``index_add_`` and the compiled path, each into a zeroed
     table-sized gradient through autograd; the compiled path into the grid's gradient sink,
     cleared after), the lookup without gradient (torch, Dr.Jit on the calling thread, Dr.Jit
-    on its pool, the compiled kernel), and torch's fused Adam on the table. Medians of ``--repeat`` calls, ms, as JSON; the variants of a row alternate."""
+    on its pool), and torch's fused Adam on the table. Medians of ``--repeat`` calls, ms, as JSON; the variants of a row alternate."""
     import statistics
 
     import drjit as dr
 
-    from shells.fields import hashgrid_cpu
     from shells.fields.hashgrid import drjit_on_calling_thread
 
     gen = torch.Generator().manual_seed(0)
@@ -328,16 +327,12 @@ def grid(a: argparse.Namespace) -> int:
             opt.step()
             grid.params.grad = None
 
-        def compiled_nograd() -> None:
-            hashgrid_cpu.lookup(grid._table(), x.numpy(), grid._layout())
-
         cases = {"fwd+bwd torch (autograd, zeroed table)": lambda: fwd_bwd("torch"),
                  "fwd+bwd compiled (autograd, zeroed table)": lambda: fwd_bwd("auto"),
                  "fwd+bwd compiled into the sink, cleared": sink_fwd_bwd,
                  "no-grad torch": lambda: nograd("torch"),
                  "no-grad Dr.Jit, calling thread": drjit_calling,
                  "no-grad Dr.Jit, pool": lambda: nograd("auto"),
-                 "no-grad compiled (its forward)": compiled_nograd,
                  "Adam fused, the table": adam}
         times: dict[str, list[float]] = {k: [] for k in cases}
         for k in range(a.repeat + 1):

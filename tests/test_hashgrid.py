@@ -177,12 +177,13 @@ def test_lookup_without_gradient_runs_drjit_and_matches_torch_bit_for_bit(cfg, m
     import shells.fields.hashgrid as hg
 
     g = _grid(*cfg)
+    g.training_path = "torch"  # the lookup with gradient: the torch path
     x = _points(3000)
     calls = []
     real = hg._drjit_lookup
     monkeypatch.setattr(hg, "_drjit_lookup", lambda grid, p: calls.append(len(p)) or real(grid, p))
     for _ in range(2):
-        torch_out = g(x).detach()  # gradient enabled: the torch path
+        torch_out = g(x).detach()  # gradient enabled, training_path "torch": the torch path
         with torch.no_grad():
             dj = g(x)
         assert torch.equal(dj, torch_out)

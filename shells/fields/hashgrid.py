@@ -110,9 +110,9 @@ class HashGrid(nn.Module):
     the torch `index_add_`; BENCHMARKS.md).
 
     ``training_path`` "auto" (default): a lookup with a gradient of the table (and none of the
-    points) of CPU float32 tensors runs compiled (`_CompiledLookup`,
-    `shells.fields.hashgrid_cpu`: the reference's floats; its backward recomputes the corners
-    and scatters on every core, into the grid's gradient sink when `use_gradient_sink` is on);
+    points) of CPU float32 tensors runs compiled (`_CompiledLookup`: Dr.Jit's kernel forward,
+    `shells.fields.hashgrid_cpu` backward, which recomputes the corners and scatters on every
+    core, into the grid's gradient sink when `use_gradient_sink` is on);
     "torch": the torch `_Lookup`, the reference of that path. Gradients of the points always
     take the torch path.
     """
@@ -151,16 +151,13 @@ class HashGrid(nn.Module):
     # -- the compiled CPU path (shells.fields.hashgrid_cpu) ------------------------------------
     def _compiled_ok(self, x01: torch.Tensor) -> bool:
         return (x01.device.type == "cpu" and self.params.device.type == "cpu"
-                and self.params.dtype == torch.float32)
+                and self.params.dtype == torch.float32 and drjit_llvm())
 
     def _layout(self) -> "hashgrid_cpu.Layout":
         lay = self.__dict__.get("_cpu_layout")
         if lay is None:
             lay = self.__dict__["_cpu_layout"] = hashgrid_cpu.Layout(self.levels, self.n_features)
         return lay
-
-    def _table(self) -> "np.ndarray":  # [R, F] float32, the parameter memory itself
-        return self.params.detach().view(-1, self.n_features).numpy()
 
     @staticmethod
     def _points(x01: torch.Tensor) -> "np.ndarray":
@@ -302,17 +299,17 @@ def _drjit_lookup(grid: HashGrid, x01: torch.Tensor) -> torch.Tensor:  # [N, 3] 
 
 
 class _CompiledLookup(torch.autograd.Function):
-    """The lookup with gradient on the compiled CPU path: the forward is
-    `hashgrid_cpu.lookup` (the same floats as `hashgrid_reference`), the backward recomputes
-    the corners and scatters (`hashgrid_cpu.scatter`) into a zeroed table, or, when the grid
-    uses its gradient sink, into the sink (no gradient reaches ``params.grad``). Points take
-    no gradient here (`HashGrid.forward` sends those to the torch path)."""
+    """The lookup with gradient on the compiled CPU path: the forward is Dr.Jit's kernel
+    (`_drjit_lookup`, the same floats as `hashgrid_reference`; nothing is saved but the
+    points), the backward recomputes the corners and scatters (`hashgrid_cpu.scatter`) into a
+    zeroed table, or, when the grid uses its gradient sink, into the sink (no gradient reaches
+    ``params.grad``). Points take no gradient here (`HashGrid.forward` sends those to the torch
+    path)."""
 
     @staticmethod
     def forward(ctx, params, x01, grid):  # [P], [N, 3], HashGrid -> [N, L F]
-        x = grid._points(x01)
-        ctx.grid, ctx.x = grid, x
-        return torch.from_numpy(hashgrid_cpu.lookup(grid._table(), x, grid._layout()))
+        ctx.grid, ctx.x = grid, grid._points(x01)
+        return _drjit_lookup(grid, x01)
 
     @staticmethod
     def backward(ctx, grad):  # [N, L F]

@@ -1,15 +1,12 @@
-"""Compiled CPU kernels of the hash-grid encoding (numba): the lookup and its gradient scatter,
-split over the cores by a plain thread pool.
+"""The compiled CPU backward of the hash-grid lookup (numba), split over the cores by a plain
+thread pool.
 
-The layout is `shells.fields.hashgrid`'s (Dr.Jit's); these kernels are its fast CPU path, the
-torch `HashGrid` lookup and `hashgrid_reference` its references (tests/test_hashgrid.py):
+The layout is `shells.fields.hashgrid`'s (Dr.Jit's); the torch `HashGrid` lookup with its
+``index_add_`` is the reference (tests/test_hashgrid_cpu.py). The forward of the compiled path
+is Dr.Jit's own kernel (`shells.fields.hashgrid._CompiledLookup`): a numba lookup written
+beside it (the reference's floats, blocks of points on two threads) was slower in a training
+step than Dr.Jit's on one thread.
 
-- `lookup`: the forward of the lookup with gradient (`shells.fields.hashgrid._CompiledLookup`),
-  nothing saved for the backward. Each feature is accumulated as fma(value, weight, acc) in
-  float64 rounded once to float32, in corner order, exactly as `hashgrid_reference` and
-  ``dr.nn.HashGridEncoding`` do: the three agree bit for bit. Points are split into
-  contiguous chunks, one per thread. (Lookups without gradient stay with Dr.Jit's kernel,
-  which is faster on one thread than this one on two.)
 - `scatter`: the backward. The rows and weights are recomputed from the points (arithmetic is
   cheaper than storing and re-reading [8, L, N] rows and weights), and the gradient of every
   corner is added into a persistent gradient table. The *levels* are split between the threads
@@ -56,7 +53,7 @@ def _row(kx, ky, kz, res, size, dense, pow2):  # table row of a grid vertex with
     return h % size
 
 
-BLOCK = 256  # points whose corner rows are computed before their rows are read
+BLOCK = 256  # points whose corner rows are computed before their gradients are added
 
 
 @_njit
@@ -77,30 +74,6 @@ def _corners(x, n0, nb, sc, res, size, offset, dense, pow2, rows, wts):
             bx, by, bz = c & 1, (c >> 1) & 1, (c >> 2) & 1
             wts[i, c] = ((wx1 if bx else wx0) * (wy1 if by else wy0)) * (wz1 if bz else wz0)
             rows[i, c] = offset + _row(kx + bx, ky + by, kz + bz, res, size, dense, pow2)
-
-
-@_njit
-def _lookup(table, x, scale, res, size, offset, dense, pow2, out, lo, hi):
-    """out[n, l F + f] for points lo <= n < hi. table [R, F] float32, x [N, 3] float32 in [0, 1].
-
-    Level by level, a block of points at a time: first every corner's row (arithmetic), then
-    the reads, which are independent of each other, so the core keeps many of them in flight
-    (a random row of a large table is a cache miss)."""
-    F = table.shape[1]
-    rows = np.empty((BLOCK, 8), dtype=np.int64)
-    wts = np.empty((BLOCK, 8), dtype=np.float32)
-    for lv in range(scale.shape[0]):
-        for n0 in range(lo, hi, BLOCK):
-            nb = min(BLOCK, hi - n0)
-            _corners(x, n0, nb, scale[lv], res[lv], size[lv], offset[lv], dense[lv], pow2,
-                     rows, wts)
-            for i in range(nb):
-                for f in range(F):
-                    acc = np.float32(0.0)
-                    for c in range(8):
-                        acc = np.float32(np.float64(table[rows[i, c], f]) * np.float64(wts[i, c])
-                                         + np.float64(acc))
-                    out[n0 + i, lv * F + f] = acc
 
 
 @_njit
@@ -167,12 +140,6 @@ def _run(jobs) -> list:
     return [first] + [f.result() for f in futures]
 
 
-def _chunks(n: int, k: int) -> list[tuple[int, int]]:
-    k = max(1, min(k, n))
-    edges = [n * i // k for i in range(k + 1)]
-    return [(edges[i], edges[i + 1]) for i in range(k)]
-
-
 class Layout:
     """The per-level constants of a grid, as the kernels take them."""
 
@@ -198,20 +165,6 @@ class Layout:
             self._deal[k] = [a for a in (np.arange(i, L, k, dtype=np.int64)
                                          for i in range(min(k, L))) if len(a)]
         return self._deal[k]
-
-
-def lookup(table: np.ndarray,  # [R, F] float32
-           x: np.ndarray,  # [N, 3] float32 in [0, 1]
-           layout: Layout, n_threads: int | None = None) -> np.ndarray:  # [N, L F] float32
-    N = x.shape[0]
-    out = np.empty((N, len(layout.scale) * layout.n_features), dtype=np.float32)
-    k = threads() if n_threads is None else n_threads
-    if N < 2048:
-        k = 1
-    a = layout.args()
-    _run([lambda lo=lo, hi=hi: _lookup(table, x, *a, out, lo, hi)
-          for lo, hi in _chunks(N, k)])
-    return out
 
 
 def scatter(grad_out: np.ndarray,  # [N, L F] float32

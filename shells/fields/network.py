@@ -79,12 +79,12 @@ class ShellField(nn.Module):
                              per_level_scale(L, cfg.base_resolution, cfg.max_resolution))
         G = cfg.geo_feature_dim
         self.geo_in, self.geo_out = 3 + L * Fl, 2 + G + 3
-        self.geo_mlp = nn.Sequential(nn.Linear(self.geo_in, cfg.geo_hidden), nn.ReLU(),
+        self.geo_mlp = nn.Sequential(nn.Linear(self.geo_in, cfg.geo_hidden), nn.ReLU(inplace=True),
                                      nn.Linear(cfg.geo_hidden, self.geo_out))
         self.rad_in = sh_dim(cfg.sh_degree) + G + 3 + 3
         layers, width = [], self.rad_in
         for _ in range(cfg.rad_layers):
-            layers += [nn.Linear(width, cfg.rad_hidden), nn.ReLU()]
+            layers += [nn.Linear(width, cfg.rad_hidden), nn.ReLU(inplace=True)]
             width = cfg.rad_hidden
         self.rad_mlp = nn.Sequential(*layers, nn.Linear(width, 3))
         self.log_kmin = math.log(cfg.min_kernel)
