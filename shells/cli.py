@@ -354,6 +354,11 @@ def _finetune(args: argparse.Namespace) -> int:
                            device=args.device, shells=args.shells)
     if distributed.launched_rank() == 0:
         print(f"stage 2 done ({summary['step']} steps); checkpoint {args.run}/finetune.pt")
+        check = summary.get("band_check")
+        if check:
+            print(f"band check on {check['pixels']} training pixels: band {check['band_psnr']:.2f}"
+                  f" dB at {check['band_spp']:.2f} samples/px, full ray {check['full_psnr']:.2f}"
+                  f" dB ({check['gap_db']:+.2f} dB)")
     return 0
 
 

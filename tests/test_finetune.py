@@ -352,3 +352,33 @@ def test_drift_diagnostic_of_a_stage_2_that_did_not_move(stage1_run, tmp_path, c
     assert out["newly_occupied_share"] == 0
     ratio, shift = out["empty_in_stage1"]["s2_over_s1"], out["empty_in_stage1"]["f2_minus_f1"]
     assert all(abs(ratio[k] - 1) < 1e-5 and abs(shift[k]) < 1e-5 for k in ("p5", "p50", "p95"))
+
+
+def test_band_check_in_the_stage_2_summary(stage1_run, tmp_path, capsys):
+    """A finished stage 2 scores the band against full ray on the same training pixels: its
+    summary holds both PSNRs and their difference, and shells-finetune prints them; with the
+    shells moved off the object (the band then sees empty space) the band falls far under full
+    ray and the check says so."""
+    import shutil
+
+    import numpy as np
+    import trimesh
+
+    from shells.train.health import BAND_CHECK_DB
+
+    a = _copy_run(stage1_run, tmp_path / "a")
+    assert finetune_main([str(a)]) == 0
+    out = capsys.readouterr().out
+    check = json.loads((a / "finetune_summary.json").read_text())["band_check"]
+    assert check["pixels"] == 4096 and check["band_spp"] > 0
+    assert check["gap_db"] == pytest.approx(check["band_psnr"] - check["full_psnr"])
+    assert f"full ray {check['full_psnr']:.2f} dB" in out
+    b = _copy_run(stage1_run, tmp_path / "b")
+    for name in ("outer.ply", "inner.ply"):  # both shells shifted far along x
+        mesh = trimesh.load(b / "shells" / name, process=False)
+        mesh.apply_translation(np.array([50.0, 0.0, 0.0]))
+        mesh.export(b / "shells" / name)
+    shutil.rmtree(b / "shells" / "lod", ignore_errors=True)
+    summary = finetune(b, progress=False)
+    moved = summary["band_check"]
+    assert moved["gap_db"] < -BAND_CHECK_DB and "under full ray" in moved["warning"]

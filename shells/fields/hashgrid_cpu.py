@@ -110,6 +110,7 @@ def _scatter(grad_out, x, scale, res, size, offset, dense, pow2, gtable, levels)
 # ---------------------------------------------------------------------------------------------
 
 _POOL: ThreadPoolExecutor | None = None
+_POOL_PID = 0
 _POOL_LOCK = threading.Lock()
 
 
@@ -127,13 +128,15 @@ def threads() -> int:
 
 def _run(jobs) -> list:
     """Run the callables in ``jobs``: the first on this thread, the rest on the pool."""
-    global _POOL
+    global _POOL, _POOL_PID
     if len(jobs) == 1:
         return [jobs[0]()]
     with _POOL_LOCK:
-        if _POOL is None or _POOL._max_workers < len(jobs) - 1:
+        # a forked child inherits the pool object but not its threads: a new pool there
+        if _POOL is None or _POOL._max_workers < len(jobs) - 1 or _POOL_PID != os.getpid():
             _POOL = ThreadPoolExecutor(max_workers=len(jobs) - 1,
                                        thread_name_prefix="hashgrid")
+            _POOL_PID = os.getpid()
         pool = _POOL
     futures = [pool.submit(j) for j in jobs[1:]]
     first = jobs[0]()

@@ -109,3 +109,46 @@ def degenerate_grid(sdf: torch.Tensor) -> str | None:
     if share == 0.0:
         return "the field is empty (f > 0 everywhere in the scene box)"
     return None
+
+
+BAND_CHECK_PIXELS = 4096  # training pixels of stage 2's band check
+BAND_CHECK_DB = 0.3  # the band further than this under full ray: a warning
+
+
+@torch.no_grad()
+def band_check(field: torch.nn.Module, scene: Any, data: Any,
+               pixels: torch.Tensor,  # [N, 3] training pixels on the run's background
+               rc: Any,  # RenderConfig: the band's sampling; full_samples
+               background: torch.Tensor,  # [3]
+               n: int = BAND_CHECK_PIXELS, seed: int = 0) -> dict[str, Any]:
+    """How far the band is from full ray, on ``n`` training pixels drawn with ``seed`` (the same
+    pixels for both): the band as stage 2 renders it (`render_band_rays`) and the torch full-ray
+    renderer over the whole ray (``render.full_samples`` stratified samples plus half as many
+    placed by importance, so that a sharp field's crossings are resolved), each scored against
+    the pixels. Returns both PSNRs, their difference (band - full ray), the band's samples per
+    pixel, and a warning when the band is more than BAND_CHECK_DB under full ray (None
+    otherwise): a cheap check of the shells that needs no full-ray render of the test views."""
+    from shells.metrics import psnr
+    from shells.render.band import render_band_rays
+    from shells.render.volume import render_volume_rays
+
+    gen = torch.Generator(device=pixels.device).manual_seed(seed)
+    idx, o, d = data.sample_pixel_rays(n, 1, gen)
+    target = pixels[idx].clamp(0, 1)
+    band = render_band_rays(field, scene, o, d, rc, background)
+    full = render_volume_rays(field, o, d, rc.full_samples, rc.full_samples // 2, background,
+                              gen)
+    band_db = psnr(band["color"][None], target[None])  # [1, n, 3]: one strip of pixels
+    full_db = psnr(full["color"][None], target[None])
+    spp = float(band["spp"].float().mean())
+    gap = band_db - full_db
+    warning = None
+    if gap < -BAND_CHECK_DB:
+        warning = (f"stage 2: the band renders {-gap:.2f} dB under full ray on {len(idx)} "
+                   f"training pixels ({band_db:.2f} against {full_db:.2f} dB at {spp:.2f} "
+                   f"samples/px): the shells miss weight the field has; wider shells "
+                   f"(shell.dilate_zeta, shell.beta_d) or a denser band (render.w_s, "
+                   f"render.delta_s) may close it")
+    return {"pixels": len(idx), "band_psnr": band_db, "full_psnr": full_db, "gap_db": gap,
+            "band_spp": spp, "full_samples": rc.full_samples + rc.full_samples // 2,
+            "warning": warning}

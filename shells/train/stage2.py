@@ -16,6 +16,7 @@ one.
 from __future__ import annotations
 
 import copy
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,8 @@ from shells.files import write_json
 from shells.fields.contraction import uncontract
 from shells.fields.hashgrid import HashGrid
 from shells.fields.network import ShellField
+from shells.progress import tqdm
+from shells.train.health import band_check
 from shells.train.loop import Schedule, color_loss, join, optimise, psnr_of
 from shells.train.optim import make_optimizer, use_hashgrid
 from shells.render.band import render_band_rays
@@ -187,6 +190,11 @@ def finetune(run_dir: str | Path, iters: int | None = None, resume: bool = False
                        stop_at=stop_at, progress=progress)
     summary["shells"] = shells
     if summary["finished"] and w.main:  # the summary marks a finished stage 2
+        field.eval()
+        check = band_check(field, scene, data, pixels, rc, background)
+        summary["band_check"] = check
+        if check["warning"] and progress:
+            tqdm.write(f"warning: {check['warning']}", file=sys.stderr)
         write_json(run.summary("stage2"), summary)
     return summary
 
