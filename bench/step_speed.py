@@ -279,7 +279,8 @@ def grid(a: argparse.Namespace) -> int:
     backward (torch `_Lookup` with ``index_add_`` and the compiled path, each into a zeroed
     table-sized gradient through autograd; the compiled path into the grid's gradient sink,
     cleared after), the lookup without gradient (torch, Dr.Jit on the calling thread, Dr.Jit
-    on its pool), and torch's fused Adam on the table. Medians of ``--repeat`` calls, ms, as JSON; the variants of a row alternate."""
+    on its pool), and torch's fused Adam on the table. Medians of ``--repeat`` calls, ms, as
+    JSON; the variants of a row alternate."""
     import statistics
 
     import drjit as dr

@@ -434,8 +434,8 @@ _RULES = [_rule(k, *r) for k, r in [
     ("train.free_transmittance", ((lambda v: 0 < v < 1), "must be in (0, 1)")),
     *[(f"{s}.color_loss", ((lambda v: v in COLOR_LOSSES), f"must be one of {COLOR_LOSSES}"))
       for s in ("train", "finetune")],
-    *[(f"{s}.hashgrid", ((lambda v: v in ("compiled", "torch")), "must be 'compiled' or 'torch'"))
-      for s in ("train", "finetune")],
+    *[(f"{s}.hashgrid", ((lambda v: v in ("compiled", "torch")),
+                         "must be 'compiled' or 'torch'")) for s in ("train", "finetune")],
     ("train.slope", ((lambda v: v in ("normal", "ray")), "must be 'normal' or 'ray'")),
     ("train.reg_rays", ((lambda v: v in ("uniform", "level_set")),
                         "must be 'uniform' or 'level_set'")),

@@ -28,9 +28,8 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-import numpy as np
-
 import numba
+import numpy as np
 
 P1, P2 = 2654435761, 805459861  # the spatial-hash primes of y and z (x: 1)
 MASK32 = 0xFFFFFFFF

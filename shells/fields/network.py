@@ -79,7 +79,9 @@ class ShellField(nn.Module):
                              per_level_scale(L, cfg.base_resolution, cfg.max_resolution))
         G = cfg.geo_feature_dim
         self.geo_in, self.geo_out = 3 + L * Fl, 2 + G + 3
-        self.geo_mlp = nn.Sequential(nn.Linear(self.geo_in, cfg.geo_hidden), nn.ReLU(inplace=True),
+        # ReLUs in place: the out-of-place clamp took a share of a training step
+        self.geo_mlp = nn.Sequential(nn.Linear(self.geo_in, cfg.geo_hidden),
+                                     nn.ReLU(inplace=True),
                                      nn.Linear(cfg.geo_hidden, self.geo_out))
         self.rad_in = sh_dim(cfg.sh_degree) + G + 3 + 3
         layers, width = [], self.rad_in

@@ -1,6 +1,7 @@
 """The optimisation loop every training stage runs (stage 1, stage 2, and any later stage).
 
-A stage supplies its field, an Adam optimiser (`shells.train.optim.make_optimizer`), its schedule and a shard loss
+A stage supplies its field, an Adam optimiser (`shells.train.optim.make_optimizer`), its
+schedule and a shard loss
 ``shard_loss(gen) -> (loss, logs)`` that draws ``batch_rays / shards`` rays with the generator
 it is given and returns their loss tensor and scalar logs (``loss`` and ``psnr`` at least). The
 loop owns the rest, the same way for every stage:
