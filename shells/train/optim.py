@@ -17,16 +17,18 @@ from typing import Any
 
 import torch
 
+from shells.device import drjit_llvm
 from shells.fields.hashgrid import HashGrid
 
 
 def sink_possible(field: torch.nn.Module) -> bool:
-    """Gradient sinks apply: the tables are float32 CPU tensors, and one process
-    trains (a gradient sink is not all-reduced)."""
+    """Gradient sinks apply: the tables are float32 CPU tensors on the compiled path (which
+    needs Dr.Jit's LLVM backend for its forward), and one process trains (a gradient sink is
+    not all-reduced)."""
     import torch.distributed as tdist
 
     grids = [m for m in field.modules() if isinstance(m, HashGrid)]
-    return (bool(grids)
+    return (bool(grids) and drjit_llvm()
             and all(g.params.device.type == "cpu" and g.params.dtype == torch.float32
                     for g in grids)
             and not (tdist.is_available() and tdist.is_initialized()
