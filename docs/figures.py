@@ -6,12 +6,15 @@
         [--frames 0 8 16 24] [--size 160]
     python docs/figures.py curve OUT.png RUN[:LABEL] [RUN[:LABEL] ...] [--title TEXT]
     python docs/figures.py baked OUT.png RUN [--size 480] [--gl llvmpipe]
+    python docs/figures.py phases OUT.png PATHS.json[:LABEL] [PATHS.json[:LABEL] ...]
 
 demo: ground truth | full-ray render | band render | band samples per pixel, one row per view.
 animation: chosen frames of each animation in a row, with its ms/frame.
 curve: stage 1's running test curve (RUN/train_curve.jsonl) against wall time, one line a run.
 baked: screenshots of RUN's baked asset in the exported browser viewer (headless Chromium):
 colour with the HUD, and layers per pixel.
+phases: a stage-1 step split into its phases, torch path against compiled, from the JSON of
+`python -m bench.step_speed paths`.
 """
 
 from __future__ import annotations
@@ -113,6 +116,41 @@ def curve(args: argparse.Namespace) -> int:
     return 0
 
 
+def phases(args: argparse.Namespace) -> int:
+    """A stage-1 step's phases (ms, the mean of the two seeds' profiled steps) of the torch and
+    the compiled hash-grid path, one pair of stacked bars for each ``bench.step_speed paths``
+    JSON."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bars, labels = [], []
+    for spec in args.files:
+        path, _, label = spec.partition(":")
+        v = json.loads(Path(path).read_text())["variants"]
+        for name in ("torch", "compiled"):
+            a, b = v[name]["phases_ms"], v[f"{name}, seed + 1"]["phases_ms"]
+            bars.append({k: (a[k] + b[k]) / 2 for k in a if k != "step (profiled)"})
+            labels.append(f"{label or Path(path).stem}, {name}")
+    keys = list(bars[0])
+    fig, ax = plt.subplots(figsize=(7.2, 0.55 * len(bars) + 1.6))
+    cmap = plt.get_cmap("tab10")
+    for i, bar in enumerate(bars):
+        left = 0.0
+        for j, k in enumerate(keys):
+            ax.barh(i, bar[k], left=left, color=cmap(j % 10),
+                    label=k.split(": ")[-1] if i == 0 else None)
+            left += bar[k]
+        ax.text(left + 2, i, f"{left:.0f} ms", va="center", fontsize=8)
+    ax.set_yticks(range(len(bars)), labels, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("ms per stage-1 step (profiled)")
+    ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.22))
+    fig.savefig(args.out, dpi=120, bbox_inches="tight")
+    print(f"wrote {args.out}")
+    return 0
+
+
 def baked(args: argparse.Namespace) -> int:
     """Screenshots of RUN/baked in the exported three.js viewer, in headless Chromium with a
     software GL: the colour view with its HUD (the fps of one warm frame, layers, triangles,
@@ -155,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python docs/figures.py",
                                 description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
-    for fn in (demo, animation, curve, baked):
+    for fn in (demo, animation, curve, baked, phases):
         doc = " ".join(fn.__doc__.split())
         sub.add_parser(fn.__name__, help=doc.split(". ")[0], description=doc).set_defaults(fn=fn)
     sp = sub.choices["demo"]
@@ -181,6 +219,9 @@ def main(argv: list[str] | None = None) -> int:
     sp.add_argument("run")
     sp.add_argument("--size", type=int, default=480, help="canvas size in pixels")
     sp.add_argument("--gl", default="llvmpipe", choices=["llvmpipe", "swiftshader"])
+    sp = sub.choices["phases"]
+    sp.add_argument("out")
+    sp.add_argument("files", nargs="+", metavar="PATHS.json[:LABEL]")
     args = p.parse_args(argv)
     return args.fn(args)
 
