@@ -173,9 +173,9 @@ def paths(a: argparse.Namespace) -> int:
     from torch.profiler import ProfilerActivity, profile, record_function
 
     from shells.data.datasets import has_transparency
-    from shells.fields.hashgrid import HashGrid, drjit_on_calling_thread
+    from shells.fields.hashgrid import drjit_on_calling_thread
     from shells.train.loop import lr_factor, step_generator
-    from shells.train.optim import make_optimizer
+    from shells.train.optim import make_optimizer, use_hashgrid
     from shells.train.stage1 import before_step, stage1_grid, stage1_step
 
     r = open_run(a.run)
@@ -189,9 +189,7 @@ def paths(a: argparse.Namespace) -> int:
     for name, dseed in variants:
         field = copy.deepcopy(r.field)
         compiled = name.startswith("compiled")
-        for m in field.modules():
-            if isinstance(m, HashGrid):
-                m.training_path = "auto" if compiled else "torch"
+        use_hashgrid(field, "compiled" if compiled else "torch")
         opt = make_optimizer(field, tc.lr, tc.lr_mlp, sink=compiled)
         kernels = [{"fused": g["fused"], "foreach": g["foreach"]} for g in opt.param_groups]
         opt.load_state_dict(r.ckpt["optimizer"])

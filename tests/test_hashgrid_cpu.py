@@ -9,21 +9,12 @@ import pytest
 import torch
 
 from shells.fields import hashgrid_cpu
-from shells.fields.hashgrid import HashGrid, hashgrid_reference, per_level_scale
+from shells.fields.hashgrid import hashgrid_reference
+from tests.test_hashgrid import ODD, TOY, _grid  # ODD: F = 4, a table not a power of 2
 
-TOY = (8, 2, 2 ** 15, 8, 256)  # L, F, T, base, max: toy_config()
-ODD = (6, 4, 3000, 4, 64)  # F = 4, a table that is not a power of 2 (the mod path)
 ONE = (3, 1, 2 ** 10, 4, 64)  # one feature per level
 BIG = (5, 2, 2 ** 17, 16, 512)  # larger tables
 BIG_ODD = (5, 4, 70000, 8, 256)  # ... with F = 4 and a table that is not a power of 2
-
-
-def _grid(L, F, T, base, mx, seed=0, scale=1.0):
-    torch.manual_seed(seed)
-    g = HashGrid(L, F, T, base, per_level_scale(L, base, mx))
-    with torch.no_grad():
-        g.params.uniform_(-scale, scale)
-    return g
 
 
 def _points(n, seed=1, res=None):
